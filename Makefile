@@ -1,0 +1,37 @@
+# Two commands do all set-up on a fresh machine: `make demo` and `make test`.
+# Both create .venv when missing and (re)install only when pyproject.toml changed.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+TORCH_PIN := torch==2.13.0
+
+.PHONY: install demo test lint doctor clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# torch first and pinned: a looser spec pulls gigabytes of CUDA wheels.
+	$(PY) -m pip install -q $(TORCH_PIN)
+	$(PY) -m pip install -q -e ".[dev]"
+	# Another package may install plain opencv over the contrib build's cv2: put contrib back.
+	$(PY) -c "import cv2; cv2.ximgproc; cv2.saliency" 2>/dev/null || { \
+	  $(PY) -m pip uninstall -q -y opencv-python-headless opencv-python; \
+	  $(PY) -m pip install -q --force-reinstall --no-deps "opencv-contrib-python-headless>=4.8,<5"; }
+	$(PY) -c "import cv2; cv2.ximgproc; cv2.saliency; print('cv2', cv2.__version__, 'contrib build OK')"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) benchmarks/frequency_demo.py --out outputs/demo
+
+test: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/pytest -q
+
+doctor: $(STAMP)
+	$(VENV)/bin/morpheus3d doctor
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache .ruff_cache

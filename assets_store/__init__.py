@@ -1,0 +1,1 @@
+"""Where every artifact lives: deterministic layout, atomic writes, checkpoints, manifests."""

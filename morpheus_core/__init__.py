@@ -1,0 +1,1 @@
+"""The Morpheus3D method: tensors in, tensors out. Imports neither Dagster nor the store."""

@@ -1,0 +1,1 @@
+"""Dagster orchestration: thin wrappers over ``ops``. The only package that imports Dagster."""
