@@ -153,7 +153,7 @@ def band_bound(r: float, d: int) -> int:
     return min(d, math.floor(r * d + 1e-9))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BandMask:
     """A diagonal 0/1 filter Λ over DCT coefficients, resolved to any H×W on demand.
 
@@ -164,7 +164,7 @@ class BandMask:
 
     kind: BandKind
     r: float | None = None
-    custom_mask: Tensor | None = field(default=None, compare=False, repr=False)
+    custom_mask: Tensor | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.kind in ("high_pass", "low_pass"):
@@ -178,6 +178,17 @@ class BandMask:
                 raise ValueError("a custom band needs a 2-D boolean mask tensor")
         elif self.custom_mask is not None:
             raise ValueError(f"a {self.kind!r} band takes no custom mask")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, BandMask):
+            return NotImplemented
+        if (self.kind, self.r) != (other.kind, other.r):
+            return False
+        return self.kind != "custom" or torch.equal(self.custom_mask, other.custom_mask)
+
+    def __hash__(self) -> int:
+        extra = hash(self.custom_mask.numpy().tobytes()) if self.kind == "custom" else 0
+        return hash((self.kind, self.r, extra))
 
     @staticmethod
     def full() -> BandMask:

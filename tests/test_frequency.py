@@ -165,6 +165,8 @@ def test_custom_mask_and_complement() -> None:
     with pytest.raises(ValueError, match="custom band mask"):
         band.mask(5, 5)
     assert BandMask.high_pass(0.3).complement() == BandMask.low_pass(0.3)
+    assert band == BandMask.custom(m.clone()) and hash(band) == hash(BandMask.custom(m.clone()))
+    assert band != band.complement() and band != BandMask.full()
     assert BandMask.full().complement() == BandMask.null()
 
 
