@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Literal
 
 import torch
@@ -35,27 +34,21 @@ def _compute_dtype(x: Tensor) -> torch.dtype:
     return x.dtype
 
 
-@lru_cache(maxsize=64)
-def _dct_matrix_cpu64(n: int) -> Tensor:
-    """C[k, j] = s_k cos(pi k (2j + 1) / 2n): rows are the orthonormal DCT-II basis."""
-    k = torch.arange(n, dtype=torch.float64)[:, None]
-    j = torch.arange(n, dtype=torch.float64)[None, :]
-    mat = torch.cos(math.pi * k * (2 * j + 1) / (2 * n)) * math.sqrt(2.0 / n)
-    mat[0] /= math.sqrt(2.0)
-    return mat
-
-
 _MATRIX_CACHE: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
 
 
 def dct_matrix(n: int, dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> Tensor:
-    """The n×n orthonormal DCT-II matrix (cached per size, dtype and device)."""
+    """The n×n orthonormal DCT-II matrix C[k, j] = s_k cos(πk(2j+1)/2n), cached per size, dtype, device."""
     if n < 1:
         raise ValueError(f"DCT size must be positive, got {n}")
     key = (n, dtype, torch.device(device))
     mat = _MATRIX_CACHE.get(key)
     if mat is None:
-        mat = _dct_matrix_cpu64(n).to(dtype=dtype, device=device)
+        k = torch.arange(n, dtype=torch.float64)[:, None]
+        j = torch.arange(n, dtype=torch.float64)[None, :]
+        basis = torch.cos(math.pi * k * (2 * j + 1) / (2 * n)) * math.sqrt(2.0 / n)
+        basis[0] /= math.sqrt(2.0)
+        mat = basis.to(dtype=dtype, device=device)
         if len(_MATRIX_CACHE) > 256:
             _MATRIX_CACHE.clear()
         _MATRIX_CACHE[key] = mat
