@@ -1,0 +1,1 @@
+"""Geometry representations: hash-grid encoding, NeRF field, tetrahedral grid, DMTet, meshes."""

@@ -1,0 +1,228 @@
+"""Multi-resolution hash-grid encoding in pure PyTorch, with tiny-cuda-nn's conventions.
+
+Per level l: scale = b^l·N_min − 1, res = ceil(scale) + 1, pos = x·scale + 0.5; the level is a
+dense grid when res³ fits the table (its size rounded up to a multiple of 8, as tcnn does),
+otherwise a spatial hash with primes (1, 2654435761, 805459861). Indices are taken modulo the
+level's size, so x = 1 (whose upper corner lies one past the grid) wraps exactly like tcnn.
+
+The backward is written by hand: the table gradient is a single ``index_add_`` (autograd's
+gather backward would build a dense (N·L·8, F) intermediate and scatter it), and the input
+gradient is the analytic derivative of the trilinear weights — the texture field needs it to
+pass colour gradients on to mesh vertices.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+PRIMES = (1, 2654435761, 805459861)
+_INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation
+
+
+@dataclass(frozen=True)
+class HashGridConfig:
+    """Defaults: the paper's 16 levels × 2 features, table 2^19, base 16, max res ≈ 4096.
+
+    Progressive masking (threestudio's schedule): ``start_levels`` active at first, one more
+    level every ``update_steps`` after ``start_step``. ``start_levels = n_levels`` disables it.
+    """
+
+    n_levels: int = 16
+    n_features_per_level: int = 2
+    log2_table_size: int = 19
+    base_resolution: int = 16
+    per_level_scale: float = 1.447269237440378
+    start_levels: int | None = None
+    start_step: int = 0
+    update_steps: int = 500
+
+    def __post_init__(self) -> None:
+        if self.n_levels < 1 or self.n_features_per_level < 1:
+            raise ValueError("a hash grid needs at least one level and one feature per level")
+        if not 1 <= self.log2_table_size <= 30:
+            raise ValueError(f"log2_table_size must be in [1, 30], got {self.log2_table_size}")
+        if self.base_resolution < 1 or self.per_level_scale < 1.0:
+            raise ValueError("base_resolution must be ≥ 1 and per_level_scale ≥ 1")
+        if self.start_levels is not None and not 1 <= self.start_levels <= self.n_levels:
+            raise ValueError(f"start_levels must be in [1, {self.n_levels}], got {self.start_levels}")
+        if self.update_steps < 1:
+            raise ValueError("update_steps must be ≥ 1")
+
+    @property
+    def output_dim(self) -> int:
+        return self.n_levels * self.n_features_per_level
+
+    def levels_at(self, step: int) -> int:
+        """How many levels the progressive schedule has switched on at ``step``."""
+        if self.start_levels is None:
+            return self.n_levels
+        grown = max(step - self.start_step, 0) // self.update_steps
+        return min(self.n_levels, self.start_levels + grown)
+
+    def level_layout(self) -> list[tuple[float, int, int, bool]]:
+        """Per level: (scale, resolution, table rows, is_hashed)."""
+        table = 2**self.log2_table_size
+        layout = []
+        for level in range(self.n_levels):
+            scale = math.exp2(level * math.log2(self.per_level_scale)) * self.base_resolution - 1.0
+            res = math.ceil(scale) + 1
+            dense_rows = -(-(res**3) // 8) * 8
+            rows = min(dense_rows, table)
+            layout.append((scale, res, rows, dense_rows > table))
+        return layout
+
+
+class _LevelTables:
+    """The constant per-level tensors the kernel needs, built once per device."""
+
+    def __init__(self, config: HashGridConfig, device: torch.device) -> None:
+        layout = config.level_layout()
+        hashed = [h for _, _, _, h in layout]
+        # Resolution grows with the level, so the dense levels are a prefix of the list.
+        self.n_dense = hashed.index(True) if any(hashed) else len(hashed)
+        self.scale = torch.tensor([s for s, _, _, _ in layout], dtype=torch.float64, device=device)
+        res = torch.tensor([r for _, r, _, _ in layout], dtype=torch.int64, device=device)
+        self.rows = torch.tensor([n for _, _, n, _ in layout], dtype=torch.int64, device=device)
+        self.offsets = torch.cumsum(self.rows, 0) - self.rows
+        self.strides = torch.stack((torch.ones_like(res), res, res * res), -1)  # (L, 3)
+        self.primes = torch.tensor(PRIMES, dtype=torch.int64, device=device)
+        self.steps = torch.tensor([0, 1], dtype=torch.int64, device=device)
+
+
+def _corner_product(per_axis: Tensor, combine: str) -> Tensor:
+    """(..., 3, 2) per-axis values of the lower/upper corner → (..., 8) values of the 8 corners.
+
+    Corner c = cx + 2·cy + 4·cz (bit d selects the upper corner on axis d); ``combine`` is how the
+    three axes meet: "mul" for trilinear weights, "add" for dense indices, "xor" for hashes.
+    """
+    x = per_axis[..., 0, :].unsqueeze(-2).unsqueeze(-2)  # (..., 1, 1, 2)
+    y = per_axis[..., 1, :].unsqueeze(-1).unsqueeze(-3)  # (..., 1, 2, 1)
+    z = per_axis[..., 2, :].unsqueeze(-1).unsqueeze(-1)  # (..., 2, 1, 1)
+    if combine == "mul":
+        out = z * y * x
+    elif combine == "add":
+        out = z + y + x
+    else:
+        out = z ^ y ^ x
+    return out.reshape(*per_axis.shape[:-2], 8)
+
+
+def _positions(x: Tensor, tables: _LevelTables) -> tuple[Tensor, Tensor]:
+    """Integer cell (N, L, 3) and fraction (N, L, 3) of every point on every level.
+
+    Positions are formed in the input's dtype: float32 rounding of x·scale matches tcnn's own
+    float arithmetic, float64 keeps gradcheck exact.
+    """
+    pos = x.unsqueeze(-2) * tables.scale.to(x.dtype).unsqueeze(-1) + 0.5
+    base = torch.floor(pos)
+    return base.to(torch.int64), pos - base
+
+
+def _row_indices(cell: Tensor, tables: _LevelTables) -> Tensor:
+    """(N, L, 8) rows of the flat table holding each corner's features."""
+    coords = cell.unsqueeze(-1) + tables.steps  # (N, L, 3, 2)
+    k = tables.n_dense
+    dense = _corner_product(coords[:, :k] * tables.strides[:k].unsqueeze(-1), "add")
+    # tcnn multiplies in uint32; the low 32 bits of the int64 product are the same number.
+    hashed = _corner_product((coords[:, k:] * tables.primes.unsqueeze(-1)) & 0xFFFFFFFF, "xor")
+    idx = torch.cat((dense, hashed), 1)
+    return torch.remainder(idx, tables.rows.reshape(1, -1, 1)) + tables.offsets.reshape(1, -1, 1)
+
+
+def _axis_weights(frac: Tensor) -> Tensor:
+    """(N, L, 3, 2): the lower corner's (1 − f) and the upper corner's f per axis."""
+    return torch.stack((1 - frac, frac), -1)
+
+
+class _HashEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
+        cell, frac = _positions(x, tables)
+        idx = _row_indices(cell, tables)
+        weights = _corner_product(_axis_weights(frac), "mul").to(table.dtype)
+        out = (table[idx] * weights.unsqueeze(-1)).sum(-2) * level_mask.reshape(1, -1, 1).to(table.dtype)
+        ctx.save_for_backward(x, table, level_mask)
+        ctx.tables = tables
+        return out.reshape(x.shape[0], -1)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, Tensor | None, None, None]:  # type: ignore[override]
+        x, table, level_mask = ctx.saved_tensors
+        tables: _LevelTables = ctx.tables
+        cell, frac = _positions(x, tables)
+        idx = _row_indices(cell, tables)
+        g = grad_out.reshape(x.shape[0], level_mask.shape[0], -1) * level_mask.reshape(1, -1, 1).to(grad_out.dtype)
+        axis_w = _axis_weights(frac)
+        grad_table = None
+        if ctx.needs_input_grad[1]:
+            weights = _corner_product(axis_w, "mul").to(g.dtype)
+            contrib = (g.unsqueeze(-2) * weights.unsqueeze(-1)).reshape(-1, table.shape[1])
+            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib.to(table.dtype))
+        grad_x = None
+        if ctx.needs_input_grad[0]:
+            corner_dot = (table[idx].to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
+            slope = torch.tensor([-1.0, 1.0], dtype=x.dtype, device=x.device).expand_as(axis_w)
+            grads = []
+            for d in range(3):
+                # ∂w/∂f_d: axis d contributes its slope (∓1), the other axes their weights.
+                per_axis = torch.where(
+                    torch.arange(3, device=x.device).reshape(1, 1, 3, 1) == d, slope, axis_w
+                )
+                grads.append((corner_dot * _corner_product(per_axis, "mul")).sum(-1))  # (N, L)
+            grad_pos = torch.stack(grads, -1)
+            grad_x = (grad_pos * tables.scale.to(x.dtype).reshape(1, -1, 1)).sum(-2)
+        return grad_x, grad_table, None, None
+
+
+class HashGrid(nn.Module):
+    """Encodes points in [0, 1]^3 (clamped) into ``config.output_dim`` features."""
+
+    def __init__(self, config: HashGridConfig, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.config = config
+        rows = sum(n for _, _, n, _ in config.level_layout())
+        init = (torch.rand(rows, config.n_features_per_level, generator=generator) * 2 - 1) * _INIT_SCALE
+        self.table = nn.Parameter(init)
+        self.register_buffer("level_mask", torch.ones(config.n_levels), persistent=True)
+        self._tables: _LevelTables | None = None
+        self.set_active_levels(config.levels_at(0))
+
+    @property
+    def output_dim(self) -> int:
+        return self.config.output_dim
+
+    @property
+    def active_levels(self) -> int:
+        return int(self.level_mask.sum().item())
+
+    def set_active_levels(self, n: int) -> None:
+        """Zero the features of levels ≥ n (coarse-to-fine training); their table gets no gradient."""
+        if not 1 <= n <= self.config.n_levels:
+            raise ValueError(f"active levels must be in [1, {self.config.n_levels}], got {n}")
+        with torch.no_grad():
+            self.level_mask.copy_((torch.arange(self.config.n_levels) < n).to(self.level_mask.dtype))
+
+    def update_step(self, step: int) -> None:
+        self.set_active_levels(self.config.levels_at(step))
+
+    def _level_tables(self) -> _LevelTables:
+        device = self.table.device
+        if self._tables is None or self._tables.scale.device != device:
+            self._tables = _LevelTables(self.config, device)
+        return self._tables
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.shape[-1] != 3:
+            raise ValueError(f"hash grid inputs must be (..., 3), got {tuple(x.shape)}")
+        lead = x.shape[:-1]
+        flat = x.reshape(-1, 3)
+        # Reduced-precision inputs would quantise positions to a few grid cells: encode in fp32 at least.
+        if flat.dtype not in (torch.float32, torch.float64):
+            flat = flat.float()
+        flat = flat.clamp(0.0, 1.0)
+        out = _HashEncode.apply(flat, self.table, self._level_tables(), self.level_mask)
+        return out.reshape(*lead, self.output_dim)

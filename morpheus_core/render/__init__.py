@@ -1,0 +1,1 @@
+"""Renderers in pure PyTorch: volume rendering for the NeRF, rasterisation for meshes."""

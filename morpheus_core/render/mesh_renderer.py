@@ -1,0 +1,94 @@
+"""Render a triangle mesh with a colour field for a batch of cameras: the DMTet and texture stages' renderer.
+
+Colour comes from a field queried at the interpolated world-space surface point of every covered
+pixel (the texture field during optimisation, an analytic function in tests), so the same field
+later bakes into the UV texture. Gradients reach the mesh vertices through the perspective-correct
+barycentrics (inside the silhouette) and the edge-based anti-aliasing (at it), and reach the
+colour field through its inputs and outputs. The output is the shared ``RenderOutput``, laid out like
+the volume renderer's so NeRF and mesh stages feed the same losses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from morpheus_core.cameras import Cameras
+from morpheus_core.geometry.mesh import Mesh, safe_normalize
+from morpheus_core.render.output import RenderOutput
+from morpheus_core.render.raster import RasterConfig, antialias, interpolate_sparse, rasterize
+
+ColourFn = Callable[[Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class MeshRenderConfig:
+    """``normals``: "vertex" interpolates area-weighted vertex normals (smooth shading), "face" uses
+    the flat normal of the visible face. ``antialias`` switches the silhouette anti-aliasing (and
+    with it the silhouette gradients) on or off."""
+
+    raster: RasterConfig = field(default_factory=RasterConfig)
+    normals: Literal["vertex", "face"] = "vertex"
+    antialias: bool = True
+
+    def __post_init__(self) -> None:
+        if self.normals not in ("vertex", "face"):
+            raise ValueError(f"normals must be 'vertex' or 'face', got {self.normals!r}")
+
+
+def _background(background: float | Tensor, like: Tensor) -> Tensor:
+    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    if bg.dim() == 0:
+        bg = bg.expand(3)
+    try:
+        return torch.broadcast_to(bg, like.shape)
+    except RuntimeError as err:
+        raise ValueError(f"background must broadcast to {tuple(like.shape)}, got {tuple(bg.shape)}") from err
+
+
+def render_mesh(mesh: Mesh, cameras: Cameras, height: int, width: int, colour_fn: ColourFn,
+                background: float | Tensor = 1.0, config: MeshRenderConfig | None = None) -> RenderOutput:
+    """Render ``mesh`` from every camera at ``height`` × ``width``.
+
+    ``colour_fn(points (N, 3)) -> (N, 3)`` is called once with the world positions of all covered
+    pixels of all views. ``background``: a scalar, an RGB triple, or anything broadcastable to
+    (B, H, W, 3). Returns rgb composited over the background, anti-aliased opacity, depth as the
+    Euclidean distance from the camera centre (the volume renderer's convention) and unit
+    world-space normals; depth and normals are 0 on background pixels."""
+    config = config or MeshRenderConfig()
+    vertices = mesh.vertices
+    if not vertices.is_floating_point():
+        raise TypeError(f"mesh vertices must be floating point, got {vertices.dtype}")
+    if vertices.dtype in (torch.float16, torch.bfloat16):
+        # Half-precision positions cannot place a 512-px silhouette; render in float32.
+        mesh = mesh.to(dtype=torch.float32)
+        vertices = mesh.vertices
+    cameras = cameras.to(device=vertices.device, dtype=vertices.dtype)
+    homog = torch.cat([vertices, torch.ones_like(vertices[:, :1])], dim=-1)
+    clip = torch.einsum("bij,vj->bvi", cameras.world_to_clip(aspect=width / height), homog)
+    frags = rasterize(clip, mesh.faces.to(vertices.device), height, width, config.raster)
+
+    points = interpolate_sparse(vertices, frags)
+    colours = colour_fn(points)
+    if colours.shape != points.shape:
+        raise ValueError(f"colour_fn must map (N, 3) points to (N, 3) colours, got {tuple(colours.shape)}")
+    if config.normals == "vertex":
+        normals = safe_normalize(interpolate_sparse(mesh.vertex_normals(), frags))
+    else:
+        normals = mesh.face_normals()[frags.face]
+    view = frags.pixel_index // (height * width)
+    depth = (points - cameras.positions[view]).norm(dim=-1, keepdim=True)
+
+    mask = frags.mask
+    rgb = frags.scatter(colours.to(vertices.dtype))
+    rgb = rgb + (1.0 - mask) * _background(background, rgb)
+    if config.antialias:
+        blended = antialias(torch.cat([rgb, mask], dim=-1), frags)
+        rgb, opacity = blended[..., :3], blended[..., 3:]
+    else:
+        opacity = mask
+    return RenderOutput(rgb=rgb, opacity=opacity, depth=frags.scatter(depth), normal=frags.scatter(normals))

@@ -1,0 +1,26 @@
+"""What every renderer returns, so stages and losses treat NeRF and mesh renders alike."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+
+@dataclass
+class RenderOutput:
+    """Channels-last images, batch first: rgb (B,H,W,3) composited on the background,
+    opacity (B,H,W,1) in [0, 1], depth (B,H,W,1) camera distance (0 where empty),
+    normal (B,H,W,3) world-space unit normals (0 where empty)."""
+
+    rgb: Tensor
+    opacity: Tensor
+    depth: Tensor
+    normal: Tensor
+
+    def rgb_chw(self) -> Tensor:
+        """(B,3,H,W): the layout the guidance and the priors take."""
+        return self.rgb.permute(0, 3, 1, 2)
+
+    def opacity_chw(self) -> Tensor:
+        return self.opacity.permute(0, 3, 1, 2)

@@ -1,0 +1,190 @@
+"""Volume rendering of a radiance field: stratified samples in the box, occupancy-grid skipping,
+per-ray compositing in log space.
+
+Compositing works with optical depths τ_i = σ_i·δ_i: transmittance T_i = exp(−Σ_{j<i} τ_j),
+alpha_i = −expm1(−τ_i), weight w_i = T_i·alpha_i, and opacity = −expm1(−Σ τ). Summing in log
+space keeps T in [0, 1] for any density (no product of thousands of factors), and the
+opacity formula is exact even when Σ w rounds above 1. Densities are clamped below
+``max_density`` so τ stays finite (inf·0 would give NaN for zero-length steps).
+
+The occupancy grid keeps a decayed running maximum of density per cell, refreshed every
+``update_every`` steps; samples in cells below the threshold are not evaluated at all (their
+density is taken as 0), which is where most of the field's cost goes on an object that fills
+a fraction of its box.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from morpheus_core.cameras import Cameras
+from morpheus_core.geometry.nerf import FieldSample, RadianceField
+from morpheus_core.render.output import RenderOutput
+
+
+@dataclass(frozen=True)
+class VolumeRenderConfig:
+    """``n_samples`` per ray (paper 256); ``chunk_points`` bounds the field's peak memory."""
+
+    n_samples: int = 256
+    stratified: bool = True
+    with_normals: bool = True
+    max_density: float = 1e10
+    chunk_points: int = 1 << 18
+
+    def __post_init__(self) -> None:
+        if self.n_samples < 1 or self.chunk_points < 1:
+            raise ValueError("n_samples and chunk_points must be ≥ 1")
+        if self.max_density <= 0:
+            raise ValueError("max_density must be positive")
+
+
+@dataclass(frozen=True)
+class OccupancyGridConfig:
+    """Cells below ``density_threshold`` are skipped; with δ ≈ 0.0135 (256 samples across the
+    box) a density of 0.01 has alpha ≈ 1e-4 per sample, far below what a render shows."""
+
+    resolution: int = 64
+    decay: float = 0.95
+    density_threshold: float = 0.01
+    update_every: int = 16
+
+    def __post_init__(self) -> None:
+        if self.resolution < 1 or self.update_every < 1:
+            raise ValueError("resolution and update_every must be ≥ 1")
+        if not 0.0 <= self.decay <= 1.0:
+            raise ValueError(f"decay must be in [0, 1], got {self.decay}")
+
+
+class OccupancyGrid(nn.Module):
+    """A decayed max of density per cell of the [−r, r]³ box. Until the first refresh every cell
+    counts as occupied, so a fresh grid never hides anything."""
+
+    def __init__(self, config: OccupancyGridConfig, bbox_radius: float) -> None:
+        super().__init__()
+        self.config = config
+        self.bbox_radius = bbox_radius
+        n = config.resolution
+        self.register_buffer("density", torch.full((n, n, n), float("inf")))
+
+    def cell_index(self, points: Tensor) -> Tensor:
+        n = self.config.resolution
+        cell = torch.floor((points / self.bbox_radius + 1) * 0.5 * n).long().clamp_(0, n - 1)
+        return (cell[..., 0] * n + cell[..., 1]) * n + cell[..., 2]
+
+    def occupied(self, points: Tensor) -> Tensor:
+        return self.density.reshape(-1)[self.cell_index(points)] > self.config.density_threshold
+
+    @property
+    def occupied_fraction(self) -> float:
+        return float((self.density > self.config.density_threshold).float().mean())
+
+    @torch.no_grad()
+    def refresh(self, field: RadianceField, generator: torch.Generator | None = None) -> None:
+        """One jittered density probe per cell; keep max(decay·old, new)."""
+        n = self.config.resolution
+        device = self.density.device
+        axis = torch.arange(n, device=device, dtype=torch.float32)
+        cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        jitter = torch.rand(cells.shape, generator=generator, dtype=torch.float32).to(device)
+        points = ((cells + jitter) / n * 2 - 1) * self.bbox_radius
+        fresh = torch.cat([field.density(c).float() for c in points.split(1 << 18)]).reshape(n, n, n)
+        fresh = torch.nan_to_num(fresh, nan=0.0, posinf=torch.finfo(fresh.dtype).max)
+        old = torch.where(torch.isinf(self.density), torch.zeros_like(self.density), self.density)
+        self.density.copy_(torch.maximum(old * self.config.decay, fresh))
+
+    def maybe_refresh(self, field: RadianceField, step: int, generator: torch.Generator | None = None) -> bool:
+        if step % self.config.update_every:
+            return False
+        self.refresh(field, generator)
+        return True
+
+
+def ray_box(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Slab test against [−r, r]³: entry and exit distances (clamped at 0) and a hit mask."""
+    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    t0 = (-radius - origins) / safe
+    t1 = (radius - origins) / safe
+    near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    far = torch.maximum(t0, t1).amin(-1)
+    hit = far > near
+    return near, torch.where(hit, far, near), hit
+
+
+def _query(
+    field: RadianceField, points: Tensor, keep: Tensor, with_normals: bool, chunk: int
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Evaluate the field only at ``keep`` points (in chunks); zeros elsewhere."""
+    n = points.shape[0]
+    density = points.new_zeros(n)
+    albedo = points.new_zeros(n, 3)
+    normal = points.new_zeros(n, 3) if with_normals else None
+    index = keep.nonzero().squeeze(-1)
+    if index.numel() == 0:
+        return density, albedo, normal
+    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in index.split(chunk)]
+    density = density.index_put((index,), torch.cat([s.density.to(points.dtype) for s in samples]))
+    albedo = albedo.index_put((index,), torch.cat([s.albedo.to(points.dtype) for s in samples]))
+    if normal is not None:
+        normal = normal.index_put((index,), torch.cat([s.normal.to(points.dtype) for s in samples]))  # type: ignore[union-attr]
+    return density, albedo, normal
+
+
+def _background(background: Tensor | float | tuple[float, float, float], like: Tensor, batch: int) -> Tensor:
+    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    if bg.dim() == 0:
+        bg = bg.expand(3)
+    return bg.expand(batch, 3) if bg.dim() == 1 else bg
+
+
+def render_volume(
+    field: RadianceField,
+    cameras: Cameras,
+    height: int,
+    width: int,
+    config: VolumeRenderConfig | None = None,
+    background: Tensor | float | tuple[float, float, float] = 1.0,
+    occupancy: OccupancyGrid | None = None,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
+    """Render ``field`` from every camera: rgb on ``background``, opacity, depth, normal."""
+    config = config or VolumeRenderConfig()
+    origins, dirs = cameras.rays(height, width)
+    batch = len(cameras)
+    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    near, far, hit = ray_box(o, d, field.bbox_radius)
+    s = config.n_samples
+    u = torch.arange(s, dtype=o.dtype, device=o.device)
+    if config.stratified:
+        u = u + torch.rand((o.shape[0], s), generator=generator, dtype=o.dtype).to(o.device)
+    else:
+        u = (u + 0.5).expand(o.shape[0], s)
+    step = ((far - near) / s).unsqueeze(-1)  # δ per ray: the bin width
+    t = near.unsqueeze(-1) + u * step  # (R, S)
+    points = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+    keep = hit.unsqueeze(-1).expand(-1, s)
+    if occupancy is not None:
+        keep = keep & occupancy.occupied(points)
+    flat = points.reshape(-1, 3)
+    density, albedo, normal = _query(field, flat, keep.reshape(-1), config.with_normals, config.chunk_points)
+    density = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(-1, s)
+    tau = density * step
+    cum = torch.cumsum(tau, -1)
+    log_t = torch.cat((torch.zeros_like(cum[:, :1]), -cum[:, :-1]), -1)
+    weights = torch.exp(log_t) * -torch.expm1(-tau)  # (R, S)
+    opacity = -torch.expm1(-cum[:, -1:])
+    bg = _background(background, o, batch).repeat_interleave(height * width, 0)
+    rgb = (weights.unsqueeze(-1) * albedo.reshape(-1, s, 3)).sum(1) + (1 - opacity) * bg
+    depth = (weights * t).sum(-1, keepdim=True)
+    if normal is not None:
+        nrm = (weights.unsqueeze(-1) * normal.reshape(-1, s, 3)).sum(1)
+    else:
+        nrm = torch.zeros_like(rgb)
+
+    def image(x: Tensor) -> Tensor:
+        return x.reshape(batch, height, width, -1)
+
+    return RenderOutput(image(rgb), image(opacity), image(depth), image(nrm))
