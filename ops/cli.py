@@ -9,7 +9,7 @@ import platform
 import sys
 from collections.abc import Sequence
 
-from morpheus_core.priors.registry import check_all, models_root, rembg_model_file
+from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry, rembg_model_file
 
 PACKAGES = (
     "torch", "numpy", "diffusers", "transformers", "peft", "safetensors", "dagster", "dagster-webserver",
@@ -65,13 +65,20 @@ def doctor() -> int:
     contrib, detail = cv2_status()
     ok &= contrib
     print(f"  OpenCV: {detail}")
-    root, source = models_root()
+    registry = ModelRegistry()
+    root, source = registry.resolved_root()
     print(f"\nModel folders (root {root}, from {source}; nothing is ever downloaded):")
-    for status in check_all(root):
+    for status in registry.statuses():
         state = "present" if status.present else "missing"
         print(f"  {status.spec.name:<18} {state:<8} {status.path}  — {status.spec.purpose}")
         for miss in status.missing:
             print(f"      expected file: {miss}")
+        if not status.present:
+            print(f"      to provide it: {status.spec.how_to.replace('<folder>', str(status.path))}")
+    print("\nPriors (weights missing → the weight-free proxy prior is the only one available):")
+    for role, names in PRIOR_MODELS.items():
+        state = "ready" if registry.prior_ready(role) else "weights missing"
+        print(f"  {role} prior {state:<16} needs {', '.join(names)}")
     u2 = rembg_model_file()
     print(f"  {'rembg u2net':<18} {'present' if u2.is_file() else 'missing':<8} {u2}  — segmentation "
           "(set $U2NET_HOME; without it the classical fallback segments)")

@@ -1,11 +1,20 @@
-"""Shared fixtures. ``MORPHEUS_TEST_DEVICE=cuda pytest`` runs the device-aware tests on a GPU."""
+"""Shared fixtures: the test device, and tiny random models of the priors' real architectures
+(saved once per session). ``MORPHEUS_TEST_DEVICE=cuda pytest`` runs the device-aware tests on a GPU."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 import torch
+
+from morpheus_core.priors.image2d import Image2DPrior, Image2DSettings
+from morpheus_core.priors.registry import ModelRegistry
+from morpheus_core.priors.zero123 import Zero123Prior
+from tests.helpers import RES_2D
+from tests.tiny_models import write_all
 
 
 @pytest.fixture
@@ -14,3 +23,30 @@ def device() -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         pytest.skip(f"MORPHEUS_TEST_DEVICE={name} but CUDA is not available")
     return torch.device(name)
+
+
+@pytest.fixture(scope="session")
+def models_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_all(tmp_path_factory.mktemp("models"))
+
+
+@pytest.fixture(scope="session")
+def registry(models_root: Path) -> ModelRegistry:
+    return ModelRegistry(root=models_root)
+
+
+@pytest.fixture(scope="session")
+def zero123(registry: ModelRegistry) -> Zero123Prior:
+    """Shared: tests give their references unique object ids and never add adapters to it."""
+    return Zero123Prior.from_registry(registry)
+
+
+@pytest.fixture
+def load_image2d(registry: ModelRegistry) -> Callable[[], Image2DPrior]:
+    """A fresh 2D prior per call (LoRA tests add adapters to its UNet)."""
+    return lambda: Image2DPrior.from_registry(registry, settings=Image2DSettings(resolution=RES_2D))
+
+
+@pytest.fixture(scope="session")
+def image2d(registry: ModelRegistry) -> Image2DPrior:
+    return Image2DPrior.from_registry(registry, settings=Image2DSettings(resolution=RES_2D))

@@ -9,6 +9,9 @@ from torch import Tensor, nn
 
 from morpheus_core.priors.base import PixelSpacePrior
 
+# The real 2D prior runs at 64 px in CPU tests (512 in the pipeline) to keep them fast.
+RES_2D = 64
+
 
 class RandomPrior(PixelSpacePrior):
     """ε = tanh(a ⊙ x_t + b·t/1000 + c): a random but deterministic noise predictor.
@@ -54,3 +57,14 @@ class PooledPrior(RandomPrior):
 
     def decode(self, latents: Tensor) -> Tensor:
         return torch.nn.functional.interpolate(latents / 2.0, scale_factor=2, mode="nearest")
+
+
+def photo(seed: int, size: int = 64, rgba: bool = True) -> torch.Tensor:
+    """A random object photo: a coloured blob with texture on a transparent background."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
+    cx, cy, r = (torch.rand(3, generator=g) * torch.tensor([0.6, 0.6, 0.3]) + torch.tensor([-0.3, -0.3, 0.4]))
+    alpha = ((xx - cx) ** 2 + (yy - cy) ** 2 < r**2).float()
+    rgb = torch.rand(3, 1, 1, generator=g) * 0.6 + 0.2 + 0.2 * torch.rand(3, size, size, generator=g)
+    rgb = rgb.clamp(0, 1)
+    return torch.cat([rgb, alpha[None]]) if rgba else rgb * alpha + (1 - alpha)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from morpheus_core.priors.registry import MODEL_SPECS, check_model
+from morpheus_core.priors.registry import ModelRegistry
 from ops.cli import cv2_status, main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -42,11 +42,11 @@ def test_doctor_reports_packages_cuda_cv2_and_models(tmp_path: Path, monkeypatch
     assert f"root {tmp_path}, from $MORPHEUS_MODELS" in out
     assert "controlnet_canny   present" in out
     assert "zero123            missing" in out and "expected file: unet/config.json" in out
+    assert "3d prior weights missing" in out and "2d prior weights missing" in out
 
 
 def test_model_check_names_missing_files(tmp_path: Path) -> None:
-    spec = next(s for s in MODEL_SPECS if s.name == "zero123")
-    status = check_model(spec, tmp_path)
+    status = ModelRegistry(root=tmp_path).status("zero123")
     assert not status.present and status.path == tmp_path / "zero123-xl"
     assert "cc_projection/config.json or clip_camera_projection/config.json" in status.missing
 

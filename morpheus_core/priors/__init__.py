@@ -1,4 +1,10 @@
-"""Diffusion priors behind one protocol (see ``base.Prior``)."""
+"""Diffusion priors behind one protocol (see ``base.Prior``).
+
+Real priors load from local folders only (``registry.ModelRegistry``): ``zero123.Zero123Prior``
+(3D prior), ``image2d.Image2DPrior`` (image-prompt 2D prior with canny ControlNet) and
+``lora.ObjectLoras`` (VSD's per-object LoRA counterpart); ``proxy.ProxyPrior`` needs no weights.
+Import them from their modules: loading diffusers/transformers is deferred to first use.
+"""
 
 from morpheus_core.priors.base import PixelSpacePrior, Prior
 

@@ -1,0 +1,122 @@
+"""Where and in which precision the priors run, and the accelerated path for frozen forwards.
+
+Frozen networks (UNets, ControlNet, encoders) are cast to ``dtype``; the SD-family VAE stays in
+float32 under float16 because its activations are known to overflow there (bfloat16 has the
+range, so it is used as is). Trainable LoRA weights stay float32 and meet half-precision weights
+under autocast. ``accel`` picks how frozen forwards run: eager, replayed from CUDA graphs captured
+per input shape (the Zero123 forward is launch-bound: DESIGN.md §7), or ``torch.compile``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+Accel = Literal["eager", "cudagraph", "compile"]
+_HALF = (torch.float16, torch.bfloat16)
+
+
+@dataclass(frozen=True)
+class PriorRuntime:
+    """Device, precision and acceleration of the priors (one value shared by all of them)."""
+
+    device: str = "cpu"
+    dtype: torch.dtype = torch.float32
+    vae_dtype: torch.dtype | None = None
+    channels_last: bool = False
+    accel: Accel = "eager"
+
+    def __post_init__(self) -> None:
+        if self.dtype not in (torch.float32, *_HALF):
+            raise ValueError(f"prior dtype must be float32, float16 or bfloat16, got {self.dtype}")
+        if self.accel not in ("eager", "cudagraph", "compile"):
+            raise ValueError(f"accel must be eager, cudagraph or compile, got {self.accel!r}")
+        if self.accel == "cudagraph" and torch.device(self.device).type != "cuda":
+            raise ValueError("accel='cudagraph' needs a CUDA device")
+
+    @classmethod
+    def for_device(cls, device: str | torch.device, accel: Accel = "eager") -> PriorRuntime:
+        """float16 + channels_last on CUDA (the paper runs fp16), float32 eager elsewhere."""
+        dev = torch.device(device)
+        if dev.type == "cuda":
+            return cls(str(dev), torch.float16, channels_last=True, accel=accel)
+        return cls(str(dev))
+
+    @property
+    def torch_device(self) -> torch.device:
+        return torch.device(self.device)
+
+    @property
+    def vae_precision(self) -> torch.dtype:
+        if self.vae_dtype is not None:
+            return self.vae_dtype
+        return torch.float32 if self.dtype == torch.float16 else self.dtype
+
+    def place(self, module: nn.Module, dtype: torch.dtype | None = None) -> nn.Module:
+        """Move a frozen network to the device and precision, frozen and in eval mode."""
+        module = module.to(device=self.torch_device)
+        target = dtype or self.dtype
+        if any(p.dtype != target for p in module.parameters()):  # diffusers warns on every .to(dtype)
+            module = module.to(dtype=target)
+        if self.channels_last:
+            module = module.to(memory_format=torch.channels_last)
+        module.requires_grad_(False)
+        return module.eval()
+
+    def autocast(self) -> AbstractContextManager:
+        """Mixed precision for forwards that combine half weights with float32 (LoRA) weights."""
+        if self.dtype == torch.float32:
+            return nullcontext()
+        return torch.autocast(self.torch_device.type, dtype=self.dtype)
+
+    def accelerate(self, fn: Callable[..., Tensor]) -> Callable[..., Tensor]:
+        """Wrap a no-grad forward of tensors only (shapes fixed per call) in the chosen path."""
+        if self.accel == "cudagraph":
+            return GraphedForward(fn)
+        if self.accel == "compile":
+            return torch.compile(fn, dynamic=False)
+        return fn
+
+
+class GraphedForward:
+    """Replays ``fn(*tensors)`` from a CUDA graph captured once per input signature.
+
+    Inputs are copied into static buffers and the output is cloned, so callers see ordinary
+    tensors. Capture happens on first use of a shape (after two warm-up runs on a side stream,
+    as CUDA graphs require); all graphs share one memory pool.
+    """
+
+    def __init__(self, fn: Callable[..., Tensor]) -> None:
+        self.fn = fn
+        self.graphs: dict[tuple, tuple[torch.cuda.CUDAGraph, list[Tensor], Tensor]] = {}
+        self.pool = None
+
+    def __call__(self, *args: Tensor) -> Tensor:
+        key = tuple((tuple(a.shape), a.dtype, a.device) for a in args)
+        if key not in self.graphs:
+            self.graphs[key] = self._capture(args)
+        graph, static_in, static_out = self.graphs[key]
+        for buf, a in zip(static_in, args, strict=True):
+            buf.copy_(a)
+        graph.replay()
+        return static_out.clone()
+
+    def _capture(self, args: tuple[Tensor, ...]) -> tuple[torch.cuda.CUDAGraph, list[Tensor], Tensor]:
+        static_in = [a.detach().clone() for a in args]
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side), torch.no_grad():
+            for _ in range(2):
+                self.fn(*static_in)
+        torch.cuda.current_stream().wait_stream(side)
+        if self.pool is None:
+            self.pool = torch.cuda.graph_pool_handle()
+        graph = torch.cuda.CUDAGraph()
+        with torch.no_grad(), torch.cuda.graph(graph, pool=self.pool):
+            static_out = self.fn(*static_in)
+        return graph, static_in, static_out
