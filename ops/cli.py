@@ -8,6 +8,8 @@ import importlib.metadata as md
 import platform
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
 
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry, rembg_model_file
 
@@ -91,7 +93,55 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.add_parser("doctor", help="check the installation, CUDA, OpenCV build and model folders")
+    prep = sub.add_parser("prepare", help="photo(s) -> recentred RGBA + mask references, reference.json, plan.json")
+    prep.add_argument("photo", type=Path, help="a photo, or a folder of photos (one output folder per photo)")
+    prep.add_argument("--out", type=Path, required=True, help="output folder (for a folder of photos: its parent)")
+    prep.add_argument("--strict", action="store_true", help="exit 1 when any photo failed (default: report only)")
+    prep.add_argument("--force", action="store_true", help="redo photos whose reference is already up to date")
+    prep.add_argument("--rembg-model", type=Path, help="u2net .onnx file or folder (default: $U2NET_HOME)")
+    prep.add_argument("--no-rembg", action="store_true", help="skip rembg; use the classical chain")
+    prep.add_argument("--border-ratio", type=float, default=0.1, help="empty margin per side (default 0.1)")
+    prep.add_argument("--max-megapixels", type=float, default=40.0, help="refuse larger photos (default 40)")
+    prep.add_argument("--hf-threshold", type=float, default=0.08, help="skip high-pass refinement below this")
     return parser
+
+
+def prepare(args: argparse.Namespace) -> int:
+    """Prepare one photo or a folder; print the outcome table; exit 1 only for failures under --strict."""
+    from ops.photo import LoadConfig
+    from ops.plan import PlanConfig
+    from ops.prepare_batch import format_table, list_photos, prepare_many, print_progress
+    from ops.reference import PrepareConfig
+    from ops.segment import SegmentConfig
+
+    try:
+        cfg = PrepareConfig(
+            load=LoadConfig(max_pixels=int(args.max_megapixels * 1e6)),
+            segment=SegmentConfig(use_rembg=not args.no_rembg, rembg_model=args.rembg_model),
+            border_ratio=args.border_ratio,
+        )
+        plan_cfg = replace(PlanConfig(), hf_threshold=args.hf_threshold)
+    except ValueError as exc:
+        print(f"morpheus3d prepare: {exc}", file=sys.stderr)
+        return 2
+    if not 0.0 <= args.border_ratio < 0.5:
+        print("morpheus3d prepare: --border-ratio must lie in [0, 0.5)", file=sys.stderr)
+        return 2
+    if args.photo.is_dir():
+        photos, out = list_photos(args.photo), args.out
+        print(f"preparing {len(photos)} photos from {args.photo} into {out}/<photo>/", file=sys.stderr)
+        outcomes = prepare_many(photos, out, cfg, plan_cfg, args.force, print_progress)
+    elif args.photo.exists():
+        from ops.prepare_batch import prepare_one
+        from ops.segment import Segmenter
+
+        outcomes = [prepare_one(args.photo, args.out, cfg, plan_cfg, Segmenter(cfg.segment), args.force)]
+    else:
+        print(f"morpheus3d prepare: {args.photo}: no such file or folder", file=sys.stderr)
+        return 2
+    print(format_table(outcomes))
+    failed = any(o.status == "failed" for o in outcomes)
+    return 1 if failed and args.strict else 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -99,6 +149,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "doctor":
         return doctor()
+    if args.command == "prepare":
+        return prepare(args)
     parser.print_help(sys.stderr)
     return 2
 

@@ -28,13 +28,22 @@ RUNTIMES = [
 ]
 
 
+@pytest.fixture
+def exact_fp32():
+    """cuDNN convolutions default to TF32 (~1e-3 relative error): compare fp32 at full precision."""
+    old = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    yield
+    torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = old
+
+
 def _close(got: torch.Tensor, want: torch.Tensor, dtype: torch.dtype) -> bool:
     tol = 1e-3 if dtype == torch.float32 else 5e-2
     return bool(torch.isfinite(got).all()) and float((got - want).abs().max()) <= tol * float(want.abs().max())
 
 
 @pytest.mark.parametrize("runtime", RUNTIMES, ids=lambda r: f"{r.dtype}-{r.accel}")
-def test_zero123_on_cuda_matches_cpu(models_root, runtime: PriorRuntime) -> None:
+def test_zero123_on_cuda_matches_cpu(models_root, runtime: PriorRuntime, exact_fp32) -> None:
     folder = models_root / "zero123-xl"
     g = torch.Generator().manual_seed(0)
     zt, t = torch.randn(2, 4, 32, 32, generator=g), torch.tensor([100, 700])

@@ -111,6 +111,13 @@ class ModelMissingError(FileNotFoundError):
         )
 
 
+def rembg_model_candidates(model: str = "u2net") -> tuple[Path, ...]:
+    """Every place under ``$U2NET_HOME`` where rembg keeps an already-present model: the flat
+    layout and the per-model folder (``models/<model>/``) of newer rembg releases."""
+    flat = rembg_model_file(model)
+    return flat, flat.parent / "models" / model / f"{model}.onnx"
+
+
 @dataclass(frozen=True)
 class ModelStatus:
     spec: ModelSpec

@@ -64,8 +64,9 @@ def relative_camera(elevation_deg: Tensor, azimuth_deg: Tensor, radius: Tensor, 
 
     ``reference`` is B×3 (elevation°, azimuth°, radius) of each row's reference view.
     """
-    e, a, r = (x.to(torch.float32).reshape(-1) for x in (elevation_deg, azimuth_deg, radius))
-    ref = reference.to(device=e.device, dtype=torch.float32)
+    # Cameras may come from the CPU (samplers) while the cached reference lives on the prior's device.
+    ref = reference.to(torch.float32)
+    e, a, r = (x.to(device=ref.device, dtype=torch.float32).reshape(-1) for x in (elevation_deg, azimuth_deg, radius))
     d_polar = torch.deg2rad(ref[:, 0] - e)  # θ = 90° − elevation
     d_az = torch.deg2rad(a - ref[:, 1])
     return torch.stack([d_polar, torch.sin(d_az), torch.cos(d_az), r - ref[:, 2]], dim=-1)

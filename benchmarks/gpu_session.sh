@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# One device call: CUDA test pass of the device-aware tests, then the render and prior benchmarks.
+# Run on the lent GPU machine from the repository root, carrying .whl (../shared/scripts/gpu-wheels.sh):
+#   bash benchmarks/gpu_session.sh [quick|priors]   results -> benchmarks/results/*_h200.*, logs -> $OUT
+# quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
+# priors: the CUDA prior tests and the full prior benchmark only.
+set -uo pipefail
+mode=${1:-quick}
+out=${OUT:-/tmp/out}
+mkdir -p "$out" /tmp/site
+pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
+export PYTHONPATH=/tmp/site:. HF_HUB_OFFLINE=1
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt"
+python -c "import torch, diffusers, transformers, peft; print(torch.__version__, diffusers.__version__, transformers.__version__, peft.__version__)" >> "$out/gpu.txt"
+if [ "$mode" = priors ]; then
+  timeout 100 python -m pytest -q -p no:cacheprovider tests/test_cuda_priors.py > "$out/pytest_cuda_priors.log" 2>&1
+  echo "pytest exit $?" >> "$out/pytest_cuda_priors.log"
+  timeout 420 python benchmarks/prior_speed.py --tag h200 > "$out/prior_speed.log" 2>&1
+  tar czf "$out/results_h200.tgz" benchmarks/results/prior_speed_h200.*
+  exit 0
+fi
+MORPHEUS_TEST_DEVICE=cuda timeout 170 python -m pytest -q -p no:cacheprovider \
+  tests/test_cameras.py tests/test_hashgrid.py tests/test_nerf.py tests/test_volume.py tests/test_raster.py \
+  tests/test_mesh_renderer.py tests/test_texture.py tests/test_tets.py tests/test_dmtet.py \
+  tests/test_mesh_regularisers.py tests/test_cuda.py tests/test_cuda_priors.py > "$out/pytest_cuda.log" 2>&1
+echo "pytest exit $?" >> "$out/pytest_cuda.log"
+timeout 90 python benchmarks/field_speed.py --device cuda --tag h200 > "$out/field_speed.log" 2>&1
+timeout 90 python benchmarks/raster_speed.py --device cuda --tag h200 > "$out/raster_speed.log" 2>&1
+timeout 210 python benchmarks/prior_speed.py --quick --tag h200 > "$out/prior_speed.log" 2>&1
+tar czf "$out/results_h200.tgz" benchmarks/results/*h200*

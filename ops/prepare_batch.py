@@ -1,0 +1,100 @@
+"""Prepare many photos: one reference folder each, a per-file outcome, never stop on a bad photo.
+
+Folder names are derived from file names (safe characters only, unique within the batch). A
+photo whose folder already holds a valid reference of the same file content is left alone, so
+re-running over a growing catalog only does the new photos.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+from ops.errors import PreparationError
+from ops.photo import EXTENSIONS, file_sha256
+from ops.plan import PlanConfig, plan_reference, read_plan
+from ops.reference import PrepareConfig, prepare_reference, read_reference
+from ops.segment import Segmenter
+
+
+@dataclass(frozen=True)
+class Outcome:
+    photo: Path
+    folder: Path | None
+    status: str  # "ok" | "warning" | "failed" | "up to date"
+    method: str
+    plan: str
+    detail: str
+    seconds: float
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """Files with an image extension (any case), sorted; hidden files are ignored."""
+    return sorted(p for p in Path(folder).iterdir()
+                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in EXTENSIONS)
+
+
+def folder_names(photos: Iterable[Path]) -> dict[Path, str]:
+    """A safe, unique folder name per photo: the stem, or the whole name when two stems clash."""
+    photos = list(photos)
+
+    def safe(text: str) -> str:
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("._") or "photo"
+
+    stems: dict[str, int] = {}
+    for p in photos:
+        stems[safe(p.stem)] = stems.get(safe(p.stem), 0) + 1
+    return {p: safe(p.stem) if stems[safe(p.stem)] == 1 else safe(p.name) for p in photos}
+
+
+def _up_to_date(photo: Path, folder: Path) -> bool:
+    info = read_reference(folder)
+    return info is not None and read_plan(folder) is not None and info.source_sha256 == file_sha256(photo)
+
+
+def prepare_one(photo: Path, folder: Path, cfg: PrepareConfig, plan_cfg: PlanConfig, segmenter: Segmenter,
+                force: bool = False) -> Outcome:
+    start = time.perf_counter()
+    if not force and _up_to_date(photo, folder):
+        return Outcome(photo, folder, "up to date", "-", "-", "reference already prepared from this file", 0.0)
+    try:
+        info = prepare_reference(photo, folder, cfg, segmenter)
+        plan = plan_reference(folder, plan_cfg)
+    except PreparationError as exc:
+        return Outcome(photo, None, "failed", "-", "-", f"{type(exc).__name__}: {exc.reason}. Fix: {exc.fix}",
+                       time.perf_counter() - start)
+    return Outcome(photo, folder, info.status, info.method, plan.summary(), "; ".join(info.warnings),
+                   time.perf_counter() - start)
+
+
+def prepare_many(photos: list[Path], out: Path, cfg: PrepareConfig, plan_cfg: PlanConfig, force: bool = False,
+                 progress: Callable[[int, int, Outcome], None] | None = None) -> list[Outcome]:
+    segmenter = Segmenter(cfg.segment)  # one rembg session for the whole batch
+    names = folder_names(photos)
+    outcomes = []
+    for i, photo in enumerate(photos, 1):
+        outcome = prepare_one(photo, out / names[photo], cfg, plan_cfg, segmenter, force)
+        outcomes.append(outcome)
+        if progress:
+            progress(i, len(photos), outcome)
+    return outcomes
+
+
+def print_progress(i: int, n: int, outcome: Outcome, stream: TextIO | None = None) -> None:
+    print(f"[{i}/{n}] {outcome.photo.name}: {outcome.status} ({outcome.seconds:.1f} s)", file=stream or sys.stderr,
+          flush=True)
+
+
+def format_table(outcomes: list[Outcome]) -> str:
+    rows = [("PHOTO", "OUTCOME", "METHOD", "PLAN", "DETAIL")]
+    rows += [(o.photo.name, o.status, o.method, o.plan, o.detail) for o in outcomes]
+    widths = [max(len(r[c]) for r in rows) for c in range(4)]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r[:4], widths, strict=True)) + "  " + r[4] for r in rows]
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "warning", "failed", "up to date")}
+    lines.append(", ".join(f"{v} {k}" for k, v in counts.items() if v) or "no photos")
+    return "\n".join(line.rstrip() for line in lines)
