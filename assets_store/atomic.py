@@ -1,31 +1,6 @@
-"""Atomic file writes: write a temporary sibling, fsync, then rename over the target.
+"""The store's atomic writes. The primitive lives in ``morpheus_core.atomic_io`` (the method writes
+checkpoints and exports too, and must not import the store); this is the store's name for it."""
 
-A killed process leaves either the old file or the new one, never a half-written artifact;
-temporaries are dot-files ending in ``.tmp`` so no reader mistakes them for outputs.
-"""
+from morpheus_core.atomic_io import atomic_write, atomic_write_bytes, atomic_write_text
 
-from __future__ import annotations
-
-import os
-from collections.abc import Callable
-from pathlib import Path
-
-
-def atomic_write(path: Path, writer: Callable[[Path], None]) -> Path:
-    """Call ``writer(tmp_path)`` and move the result to ``path`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        writer(tmp)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def atomic_write_text(path: Path, text: str) -> Path:
-    return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+__all__ = ["atomic_write", "atomic_write_bytes", "atomic_write_text"]

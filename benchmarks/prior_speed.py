@@ -145,6 +145,10 @@ def main() -> None:
     parser.add_argument("--dtype", default="fp16", choices=sorted(DTYPES))
     parser.add_argument("--warmup", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--vae-dtype", default=None, choices=sorted(DTYPES),
+                        help="VAE precision (default: fp32 under fp16, else the prior dtype)")
+    parser.add_argument("--profile", action="store_true",
+                        help="also write a torch.profiler table of 3 steps per row to <out>/prior_profile_<tag>.txt")
     args = parser.parse_args()
 
     cuda = torch.cuda.is_available()
@@ -163,10 +167,12 @@ def main() -> None:
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
 
-    rows = []
+    rows: list[dict] = []
+    profiles: list[str] = []
     t_start = time.perf_counter()
     for mode in modes:
-        runtime = PriorRuntime(device, dtype, channels_last=cuda, accel=mode)
+        vae_dtype = DTYPES[args.vae_dtype] if args.vae_dtype else None
+        runtime = PriorRuntime(device, dtype, vae_dtype=vae_dtype, channels_last=cuda, accel=mode)
         for kind in args.kinds:
             rig = None
             try:
@@ -178,6 +184,8 @@ def main() -> None:
                 row = {"kind": kind, "mode": mode, "batch": b, "dtype": str(dtype).replace("torch.", "")}
                 try:
                     row |= measure(kind, rig, b, device, warmup, steps)
+                    if args.profile:
+                        profiles.append(f"## {kind} {mode} batch {b}\n{profile_table(kind, rig, b, device)}")
                     row["speedup_per_object_vs_anchor"] = round(ANCHORS_MS[kind] / row["ms_per_object"], 2)
                 except Exception as exc:
                     row["error"] = repr(exc)[:500]
@@ -197,9 +205,26 @@ def main() -> None:
     }
     tag = args.tag or ("cpu_tiny" if not cuda else ("h200" if "H200" in name else "cuda") + ("_tiny" if args.tiny
                                                                                               else ""))
+    if profiles:
+        atomic_write_text(args.out / f"prior_profile_{tag}.txt", "\n\n".join(profiles) + "\n")
     atomic_write_text(args.out / f"prior_speed_{tag}.json", json.dumps(summary, indent=2))
     atomic_write_text(args.out / f"prior_speed_{tag}.md", _markdown(summary))
     print(f"wrote {args.out}/prior_speed_{tag}.{{json,md}} in {summary['total_wall_s']} s")
+
+
+def profile_table(kind: str, rig: Rig, batch: int, device: str, rows: int = 30) -> str:
+    """Where one step's time goes: the top operators by device (or CPU) self time over 3 steps."""
+    from torch.profiler import ProfilerActivity, profile
+
+    step = _step_fn(kind, rig, batch, device, NoiseSchedule())
+    step(0)
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if torch.device(device).type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        for i in range(3):
+            step(1 + i)
+        _sync(device)
+    key = "self_cuda_time_total" if torch.device(device).type == "cuda" else "self_cpu_time_total"
+    return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=60)
 
 
 def _markdown(s: dict) -> str:

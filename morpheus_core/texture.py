@@ -17,20 +17,18 @@
   with ``TooManyFacesError``; either message names the DMTet grid resolution that fits the budget
   (``morpheus_core.geometry.dmtet.suggest_resolution``).
 * Export: ``encode_glb`` / ``encode_obj`` return bytes (for callers that write through the asset
-  store); ``export_glb`` / ``export_obj`` write files atomically themselves (temporary sibling,
-  fsync, ``os.replace``) — morpheus_core does not import the store, so that helper lives here.
+  store); ``export_glb`` / ``export_obj`` write files atomically (``morpheus_core.atomic_io``).
 """
 
 from __future__ import annotations
 
 import io
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -40,6 +38,7 @@ import xatlas
 from PIL import Image
 from torch import Tensor, nn
 
+from morpheus_core.atomic_io import atomic_write_bytes
 from morpheus_core.geometry.dmtet import suggest_resolution
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
@@ -300,27 +299,9 @@ def encode_obj(baked: BakedTexture, stem: str) -> dict[str, bytes]:
     return {f"{stem}.obj": out.getvalue().encode(), f"{stem}.mtl": mtl.encode(), f"{stem}.png": png.getvalue()}
 
 
-def _atomic_write(path: Path, write: Callable[[BinaryIO], None]) -> Path:
-    """Call ``write`` on a temporary sibling, fsync it, rename it over ``path``; on any failure the
-    temporary is removed and ``path`` keeps its old content (or stays absent)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
 def export_glb(baked: BakedTexture, path: Path | str) -> Path:
     """Write the asset to ``path`` as GLB, atomically."""
-    return _atomic_write(Path(path), lambda fh: fh.write(encode_glb(baked)))
+    return atomic_write_bytes(Path(path), encode_glb(baked))
 
 
 def export_obj(baked: BakedTexture, path: Path | str) -> Path:
@@ -331,5 +312,5 @@ def export_obj(baked: BakedTexture, path: Path | str) -> Path:
     obj_name = f"{path.stem}.obj"
     for name, data in files.items():
         if name != obj_name:
-            _atomic_write(path.with_name(name), lambda fh, d=data: fh.write(d))
-    return _atomic_write(path, lambda fh: fh.write(files[obj_name]))
+            atomic_write_bytes(path.with_name(name), data)
+    return atomic_write_bytes(path, files[obj_name])

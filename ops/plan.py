@@ -13,10 +13,11 @@ Rules (calibration in ``benchmarks/results/prepare_calibration.md``):
   striped ones ≥ 0.11; the threshold 0.08 sits near their geometric mean.
 - DMTet grid: the largest step of ``grid_step`` in [min_grid, max_grid] that (a) does not resolve
   finer than the photo shows — at least ``source_px_per_cell`` source pixels per cell across the
-  object — and (b) keeps the extracted surface under ``extract_face_limit``. Marching tetrahedra on
-  a Kuhn-split grid yield ≈ 36–48 faces per (silhouette area in cells²) (measured on spheres and
-  cubes), so faces ≈ ``faces_per_cell2`` · silhouette share of the grid face · n². Larger objects in
-  the source photo get finer grids; bulky silhouettes are capped by the face limit.
+  object — and (b) keeps the extracted surface under ``extract_face_limit``. The face count comes
+  from DMTet's own estimate (``morpheus_core.geometry.dmtet.estimate_faces``, ≈ 9 faces per cell²
+  of surface), with the surface taken as ``surface_per_silhouette`` × the silhouette's area: Cauchy's
+  formula gives 4 × the mean projected area for a convex body. Larger objects in the source photo
+  get finer grids; bulky silhouettes are capped by the face limit.
 - export: meshes above ``export_max_faces`` (xatlas slows super-linearly) are marked for decimation.
 """
 
@@ -32,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 from assets_store.atomic import atomic_write_text
+from morpheus_core.geometry.dmtet import estimate_faces, suggest_resolution
 from morpheus_core.imaging import object_high_frequency_ratio, resize
 from ops.reference import ReferenceInfo, read_reference
 
@@ -48,7 +50,7 @@ class PlanConfig:
     max_grid: int = 128  # the paper's DMTet grid
     grid_step: int = 16
     source_px_per_cell: float = 2.0
-    faces_per_cell2: float = 40.0
+    surface_per_silhouette: float = 4.0  # Cauchy: surface = 4 × mean projected area (convex bodies)
     extract_face_limit: int = 250_000
     export_max_faces: int = 50_000
     # The reference camera (distance 2.5, fov 40°) sees 2·2.5·tan 20° = 1.82 units of the 2-unit grid cube.
@@ -117,11 +119,12 @@ def _refinement(rgb: np.ndarray, alpha: np.ndarray, cfg: PlanConfig) -> Decision
 def _grid(info: ReferenceInfo, area_fraction: float, cfg: PlanConfig) -> tuple[Decision, float]:
     span = (1.0 - 2.0 * info.border_ratio) * cfg.frame_in_grid  # object's long side / grid side
     grid_area = area_fraction * cfg.frame_in_grid**2  # silhouette share of a grid face
+    surface = max(cfg.surface_per_silhouette * grid_area * 4.0, 1e-9)  # world units²: the grid face is 2 × 2
     n_detail = info.object_long_side_px / (cfg.source_px_per_cell * span)
-    n_faces = math.sqrt(cfg.extract_face_limit / max(cfg.faces_per_cell2 * grid_area, 1e-9))
+    n_faces = suggest_resolution(cfg.extract_face_limit, surface, min_resolution=1, max_resolution=1 << 16)
     limit = min(n_detail, n_faces, cfg.max_grid)
     n = max(cfg.min_grid, int(limit // cfg.grid_step) * cfg.grid_step)
-    faces = cfg.faces_per_cell2 * grid_area * n * n
+    faces = estimate_faces(n, surface)
     binding = {n_detail: "source detail", n_faces: "extracted face limit", cfg.max_grid: "max_grid"}[limit]
     m = {"object_long_side_px": info.object_long_side_px, "silhouette_share": round(area_fraction, 4),
          "grid_by_detail": round(n_detail, 1), "grid_by_faces": round(n_faces, 1), "estimated_faces": round(faces)}

@@ -14,6 +14,7 @@ import torch
 import trimesh
 from PIL import Image
 
+from morpheus_core.atomic_io import atomic_write
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.texture import (
@@ -22,7 +23,6 @@ from morpheus_core.texture import (
     TextureField,
     TextureFieldConfig,
     TooManyFacesError,
-    _atomic_write,
     bake_uv,
     cluster_decimate,
     dilate,
@@ -179,13 +179,13 @@ def test_failed_export_leaves_old_file_and_no_temporary(baked, tmp_path: Path, m
     assert target.read_bytes() == good
     assert [p.name for p in tmp_path.iterdir()] == ["asset.glb"]
 
-    def half_then_fail(fh) -> None:
-        fh.write(good[: len(good) // 2])
+    def half_then_fail(tmp) -> None:
+        tmp.write_bytes(good[: len(good) // 2])
         raise OSError("disk full")
 
     fresh = tmp_path / "new.glb"
     with pytest.raises(OSError, match="disk full"):
-        _atomic_write(fresh, half_then_fail)
+        atomic_write(fresh, half_then_fail)
     assert not fresh.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["asset.glb"]
 

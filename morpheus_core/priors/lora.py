@@ -10,14 +10,13 @@
   layer (and is inference-only); a per-object UNet loop would cost one full forward per object.
 - The fine-tuning loss is the guidance's ``finetune_loss`` (ε-MSE at t ~ U[0, T) on the detached
   rendered latents); ``step()`` applies each object's Adam.
-- Checkpoints: ``save``/``load`` write one safetensors file per object; the write is atomic
-  here (temporary sibling, fsync, ``os.replace``) because morpheus_core cannot use the store.
+- Checkpoints: ``save``/``load`` write one safetensors file per object, atomically
+  (``morpheus_core.atomic_io``).
 """
 
 from __future__ import annotations
 
 import hashlib
-import os
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -29,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from morpheus_core.atomic_io import atomic_write
 from morpheus_core.priors.runtime import PriorRuntime
 
 
@@ -188,19 +188,8 @@ class ObjectLoras:
         """Write the object's adapter as safetensors, atomically."""
         from safetensors.torch import save_file
 
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            save_file(self.state_dict(object_id), str(tmp), metadata={"object_id": object_id,
-                                                                       **self.settings.metadata()})
-            with open(tmp, "rb") as fh:
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-        return path
+        metadata = {"object_id": object_id, **self.settings.metadata()}
+        return atomic_write(Path(path), lambda tmp: save_file(self.state_dict(object_id), str(tmp), metadata=metadata))
 
     def load(self, object_id: str, path: Path) -> None:
         """Restore an adapter saved by ``save`` (adding it if needed); optimiser state restarts."""
