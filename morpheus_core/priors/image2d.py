@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.diffusion import apply_cfg
+from morpheus_core.imaging import CANNY_HIGH, CANNY_LOW, canny_edges, composite_batch_on_white, resize_batch
 from morpheus_core.priors.image_prompt import ImagePromptEncoder, IPAdapterEncoder, PromptTokens, stack_tokens
-from morpheus_core.priors.imaging import CANNY_HIGH, CANNY_LOW, canny_edges, composite_on_white, resize
 from morpheus_core.priors.objects import check_rows
 from morpheus_core.priors.registry import ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
@@ -142,7 +142,7 @@ class Image2DPrior:
 
     def set_reference(self, object_id: str, image: Tensor) -> None:
         """Cache the object's image-prompt tokens from its photo (3×H×W or RGBA, in [0, 1])."""
-        ref = resize(composite_on_white(image).float(), self.settings.resolution)
+        ref = resize_batch(composite_batch_on_white(image).float(), self.settings.resolution)
         self._tokens[object_id] = self.encoder.encode(ref)
 
     def forget(self, object_id: str) -> None:

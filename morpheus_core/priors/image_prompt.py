@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.priors.imaging import to_uint8_hwc
+from morpheus_core.imaging import batch_to_uint8_hwc
 from morpheus_core.priors.runtime import PriorRuntime
 
 IP_ADAPTER_WEIGHTS = ("models/ip-adapter_sd15.safetensors", "models/ip-adapter_sd15.bin")
@@ -112,7 +112,7 @@ class IPAdapterEncoder:
     def encode(self, images: Tensor) -> PromptTokens:
         dev, dt = self.runtime.torch_device, self.runtime.dtype
         with torch.no_grad():
-            pixels = self.image_processor(images=to_uint8_hwc(images), return_tensors="pt").pixel_values
+            pixels = self.image_processor(images=batch_to_uint8_hwc(images), return_tensors="pt").pixel_values
             embeds = self.image_encoder(pixel_values=pixels.to(device=dev, dtype=dt)).image_embeds
         context = self.null_context.expand(embeds.shape[0], -1, -1)
         return PromptTokens(context, embeds[:, None].to(dt))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from morpheus_core.priors.imaging import composite_on_white, resize
+from morpheus_core.imaging import composite_batch_on_white, resize_batch
 from morpheus_core.priors.runtime import PriorRuntime
 
 
@@ -26,7 +26,7 @@ class LatentCodec:
         self.scaling_factor = float(vae.config.scaling_factor)
 
     def _posterior_mean(self, images: Tensor) -> Tensor:
-        x = resize(composite_on_white(images), self.resolution)
+        x = resize_batch(composite_batch_on_white(images), self.resolution)
         x = (x * 2.0 - 1.0).to(device=self.runtime.torch_device, dtype=self.vae.dtype)
         return self.vae.encode(x).latent_dist.mode()
 

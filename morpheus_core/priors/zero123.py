@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.diffusion import apply_cfg
-from morpheus_core.priors.imaging import composite_on_white, resize, to_uint8_hwc
+from morpheus_core.imaging import batch_to_uint8_hwc, composite_batch_on_white, resize_batch
 from morpheus_core.priors.objects import check_rows, gather_rows
 from morpheus_core.priors.registry import ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
@@ -208,10 +208,10 @@ class Zero123Prior:
     def set_reference(self, object_id: str, image: Tensor, camera: Camera | None = None) -> None:
         """Cache the object's conditioning from its photo (3×H×W, or RGBA 4×H×W, in [0, 1])."""
         camera = camera or Camera()
-        ref = resize(composite_on_white(image).float(), self.resolution)
+        ref = resize_batch(composite_batch_on_white(image).float(), self.resolution)
         dev, dt = self.runtime.torch_device, self.runtime.dtype
         with torch.no_grad():
-            pixels = self.image_processor(images=to_uint8_hwc(ref), return_tensors="pt").pixel_values
+            pixels = self.image_processor(images=batch_to_uint8_hwc(ref), return_tensors="pt").pixel_values
             embeds = self.image_encoder(pixel_values=pixels.to(device=dev, dtype=dt)).image_embeds
             self._clip[object_id] = embeds[:, None].to(dt)  # 1×1×E
             self._latents[object_id] = self.codec.encode_unscaled(ref).to(dt)
