@@ -243,7 +243,10 @@ def hybrid_guidance(
             else:
                 eps_phi = draw.noise
         wd = work_dtype(z0)
-        residual = torch.nan_to_num(eps_pred.to(wd) - eps_phi.to(device=eps_pred.device, dtype=wd))
+        residual = eps_pred.to(wd) - eps_phi.to(device=eps_pred.device, dtype=wd)
+        # Counted before sanitising, so callers can treat a step with a broken prior as bad.
+        stats[f"term{i}/{term.prior}/nonfinite"] = (~torch.isfinite(residual)).sum()
+        residual = torch.nan_to_num(residual, nan=0.0, posinf=0.0, neginf=0.0)
         filtered = sum(f.k * filter_residual(residual, f.band) for f in term.filters)
         w = schedule.weight(draw.t, term.weighting, like=residual)
         g = _sanitize(config.lambda_c * w * filtered / batch, config.grad_clip)

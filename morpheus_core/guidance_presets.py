@@ -37,17 +37,19 @@ def _band(r: float) -> BandMask:
     return BandMask.high_pass(r)
 
 
-def term_3d(mode: Mode = "sds", k: float = K_3D, t_range: TimestepRange = LATE_T) -> PriorTerm:
+def term_3d(mode: Mode = "sds", k: float = K_3D, t_range: TimestepRange = LATE_T, cfg_scale: float = CFG_3D,
+            lora_cfg_scale: float = CFG_LORA) -> PriorTerm:
     return PriorTerm(
-        PRIOR_3D, mode, (BandWeight(BandMask.full(), k),), cfg_scale=CFG_3D,
-        finetuned_cfg_scale=CFG_LORA, t_range=t_range,
+        PRIOR_3D, mode, (BandWeight(BandMask.full(), k),), cfg_scale=cfg_scale,
+        finetuned_cfg_scale=lora_cfg_scale, t_range=t_range,
     )
 
 
-def term_2d(mode: Mode = "vsd", k: float = K_2D, r: float = HIGH_PASS_R) -> PriorTerm:
+def term_2d(mode: Mode = "vsd", k: float = K_2D, r: float = HIGH_PASS_R, t_range: TimestepRange = LATE_T,
+            cfg_scale: float = CFG_2D, lora_cfg_scale: float = CFG_LORA) -> PriorTerm:
     return PriorTerm(
-        PRIOR_2D, mode, (BandWeight(_band(r), k),), cfg_scale=CFG_2D,
-        finetuned_cfg_scale=CFG_LORA, t_range=LATE_T,
+        PRIOR_2D, mode, (BandWeight(_band(r), k),), cfg_scale=cfg_scale,
+        finetuned_cfg_scale=lora_cfg_scale, t_range=t_range,
     )
 
 

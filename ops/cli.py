@@ -103,7 +103,64 @@ def build_parser() -> argparse.ArgumentParser:
     prep.add_argument("--border-ratio", type=float, default=0.1, help="empty margin per side (default 0.1)")
     prep.add_argument("--max-megapixels", type=float, default=40.0, help="refuse larger photos (default 40)")
     prep.add_argument("--hf-threshold", type=float, default=0.08, help="skip high-pass refinement below this")
+    run = sub.add_parser("run", help="photo(s) -> textured GLB: every stage, cached and resumable, in --out")
+    run.add_argument("photo", type=Path, help="a photo, or a folder of photos")
+    run.add_argument("--out", type=Path, required=True, help="the asset store: <out>/<photo-key>/<stage>/")
+    run.add_argument("--preset", default="draft", choices=["draft", "standard", "paper"],
+                     help="schedule and sizes (draft: minutes on a CPU; paper: the paper's schedule on a GPU)")
+    run.add_argument("--init-mesh", type=Path, help="refine an existing asset (GLB/OBJ): skips the NeRF stage")
+    run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                     help="override any setting, e.g. --set nerf.loop.steps=300 --set texture.guidance.k2d=0")
+    run.add_argument("--device", help="cpu, cuda, cuda:1 … (default: auto)")
+    run.add_argument("--list-keys", action="store_true", help="print every overridable setting and exit")
     return parser
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Run the pipeline over one photo or a folder; print the per-photo outcome table."""
+    import logging
+
+    from assets_store.keys import assign_keys
+    from assets_store.store import Store
+    from ops.config_tree import ConfigError, flat_keys
+    from ops.pipeline import run_photo
+    from ops.prepare_batch import list_photos
+    from ops.presets import preset
+    from ops.progress import ConsoleProgress
+    from ops.run_table import format_run_table
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    overrides = list(args.overrides) + ([f"device={args.device}"] if args.device else [])
+    try:
+        cfg = preset(args.preset, overrides)
+    except (ConfigError, ValueError) as exc:
+        print(f"morpheus3d run: {exc}", file=sys.stderr)
+        return 2
+    if args.list_keys:
+        print("\n".join(flat_keys(cfg)))
+        return 0
+    if args.init_mesh is not None and not args.init_mesh.is_file():
+        print(f"morpheus3d run: --init-mesh {args.init_mesh}: no such file", file=sys.stderr)
+        return 2
+    if args.photo.is_dir():
+        photos = list_photos(args.photo)
+        if not photos:
+            print(f"morpheus3d run: {args.photo} holds no photos (.jpg, .png, .webp, …)", file=sys.stderr)
+            return 2
+    elif args.photo.is_file():
+        photos = [args.photo]
+    else:
+        print(f"morpheus3d run: {args.photo}: no such file or folder", file=sys.stderr)
+        return 2
+    keys = assign_keys(p.name for p in photos)
+    store = Store(args.out)
+    progress = ConsoleProgress()
+    outcomes = []
+    for i, photo in enumerate(photos, 1):
+        print(f"[{i}/{len(photos)}] {photo.name} -> {store.photo_dir(keys[photo.name])}", file=sys.stderr)
+        outcomes.append(run_photo(photo, store, cfg, args.preset, keys[photo.name], args.init_mesh, progress))
+    print(format_run_table(outcomes, store))
+    return 1 if any(o.status == "failed" for o in outcomes) else 0
 
 
 def prepare(args: argparse.Namespace) -> int:
@@ -151,6 +208,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return doctor()
     if args.command == "prepare":
         return prepare(args)
+    if args.command == "run":
+        return run_command(args)
     parser.print_help(sys.stderr)
     return 2
 

@@ -17,6 +17,7 @@ from morpheus_core.geometry.mesh import (
     surface_area,
     unique_edges,
 )
+from morpheus_core.geometry.winding import winding_number
 
 
 def _grid(n: int, dtype=torch.float64, device="cpu") -> Mesh:
@@ -162,3 +163,17 @@ def test_surface_area() -> None:
     v = torch.zeros(3, 3, dtype=torch.float64, requires_grad=True)  # one zero-area triangle
     (grad,) = torch.autograd.grad(surface_area(Mesh(v, torch.tensor([[0, 1, 2]]))), v)
     assert torch.isfinite(grad).all()
+
+
+def test_winding_number_is_one_inside_and_zero_outside_a_closed_mesh() -> None:
+    g = torch.Generator().manual_seed(11)
+    box = trimesh.creation.box(extents=(1.0, 0.6, 0.8))
+    mesh = Mesh(torch.tensor(box.vertices, dtype=torch.float32), torch.tensor(box.faces, dtype=torch.int64))
+    pts = (torch.rand(400, 3, generator=g) * 2 - 1) * 0.9
+    inside = (pts.abs() < torch.tensor([0.5, 0.3, 0.4])).all(-1)
+    margin = ((pts.abs() - torch.tensor([0.5, 0.3, 0.4])).abs() > 0.02).all(-1)
+    w = winding_number(mesh, pts, chunk_pairs=1000)
+    assert torch.allclose(w[margin & inside], torch.ones(1), atol=1e-4)
+    assert torch.allclose(w[margin & ~inside], torch.zeros(1), atol=1e-4)
+    flipped = Mesh(mesh.vertices, mesh.faces.flip(-1))  # inward winding: −1 inside
+    assert torch.allclose(winding_number(flipped, pts[margin & inside]), -torch.ones(1), atol=1e-4)

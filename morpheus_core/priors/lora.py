@@ -184,6 +184,15 @@ class ObjectLoras:
             raise KeyError(f"LoRA state for {object_id!r} does not match this UNet's adapter (e.g. {diff})")
         set_peft_model_state_dict(self.unet, state, adapter_name=self._names[object_id])
 
+    def optimizer_state_dict(self, object_id: str) -> dict[str, Any]:
+        """The object's Adam state, so a resumed run continues the same update sequence."""
+        self._require([object_id])
+        return self._optimizers[object_id].state_dict()
+
+    def load_optimizer_state_dict(self, object_id: str, state: dict[str, Any]) -> None:
+        self._require([object_id])
+        self._optimizers[object_id].load_state_dict(state)
+
     def save(self, object_id: str, path: Path) -> Path:
         """Write the object's adapter as safetensors, atomically."""
         from safetensors.torch import save_file

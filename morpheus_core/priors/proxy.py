@@ -89,3 +89,20 @@ def constant_target(image: Tensor) -> TargetFn:
     """A target callable that ignores the condition (one fixed view, as in the 2-D demo)."""
     fixed = image.detach()
     return lambda _condition: fixed
+
+
+class CurrentRenderCounterpart(PixelSpacePrior):
+    """The VSD counterpart of a proxy prior: ε_φ = (x_t − α_t·x̂)/σ_t with x̂ the current render.
+
+    VSD fine-tunes ε_φ to model the distribution of the current renders; for a deterministic
+    render that model's ideal is exactly this expression, with nothing left to learn. So with a
+    noise-free proxy target, VSD's residual α_t/σ_t·(x0 − x_target) equals SDS's: the proxy runs
+    every VSD configuration correctly, and only real priors show the two apart.
+    ``current_fn(condition)`` returns the (detached) renders of this step.
+    """
+
+    def __init__(self, current_fn: TargetFn, schedule: NoiseSchedule) -> None:
+        self._as_target = ProxyPrior(current_fn, schedule)
+
+    def predict_noise(self, noisy: Tensor, t: Tensor, condition: Any, cfg_scale: float) -> Tensor:
+        return self._as_target.predict_noise(noisy, t, condition, cfg_scale)

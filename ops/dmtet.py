@@ -1,0 +1,253 @@
+"""Stage 1b: NeRF → DMTet, then optimise the mesh under the 3D prior (SDS, t ∈ [0.02, 0.5]).
+
+The SDF starts from the NeRF density (inside where density > 25) on the grid the plan chose; a
+texture field (hash grid + MLP) is warm-started from the NeRF's albedo around the surface and
+then trained with the geometry. Losses: reference guidance + mask BCE on the reference view, the
+3D prior on random views, Laplacian smoothness, normal consistency and the SDF sign regulariser
+(the means are scaled by the pixel count so their weights hold at any resolution).
+
+``--init-mesh`` (refining an existing asset, paper §5.6): the SDF sign comes from the mesh's
+winding number and the texture field is fitted to colours sampled from its baked texture.
+Output: ``mesh.npz`` (vertices, faces), ``texture_field.pt``, ``dmtet.pt``, preview, run log.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from assets_store.atomic import atomic_write
+from morpheus_core.cameras import turntable
+from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
+from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
+from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.geometry.winding import winding_number
+from morpheus_core.guidance import hybrid_guidance
+from morpheus_core.render.mesh_renderer import render_mesh
+from morpheus_core.render.textured import load_textured, sample_surface
+from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
+from ops.colour_fit import fit_colour_field, jittered_surface_points
+from ops.guidance_settings import GuidanceSettings
+from ops.nerf_fit import NERF_FILE, adam
+from ops.optimise import BadStep, LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
+from ops.stage_common import (
+    PREVIEW_FILE,
+    ReferenceTarget,
+    StageResult,
+    load_module,
+    loop_metrics,
+    mask_loss,
+    novel_cameras,
+    pick_device,
+    pixels,
+    reference_psnr,
+    require_finite_output,
+    save_module,
+    save_strip,
+    write_log,
+)
+
+MESH_FILE = "mesh.npz"
+TEXTURE_FILE = "texture_field.pt"
+DMTET_FILE = "dmtet.pt"
+CODE_VERSION = "dmtet-1"
+
+
+@dataclass(frozen=True)
+class DMTetFitConfig:
+    """``grid``: the tet grid (None: the plan's choice, capped at ``max_grid``)."""
+
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
+    resolution: int = 512
+    n_views: int = 1
+    grid: int | None = None
+    max_grid: int = 128
+    density_threshold: float = 25.0
+    deform_scale: float = 0.5
+    texture: TextureFieldConfig = field(default_factory=TextureFieldConfig)
+    guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
+    lr_sdf: float = 1e-3
+    lr_deform: float = 1e-2
+    lr_grid: float = 1e-2
+    lr_mlp: float = 1e-3
+    mask_weight: float = 1.0
+    laplacian_weight: float = 10.0
+    normal_consistency_weight: float = 0.1
+    sdf_reg_weight: float = 0.01
+    colour_fit_steps: int = 300
+    colour_fit_points: int = 1 << 15
+    init_mesh_max_faces: int = 20_000
+    preview_size: int = 192
+
+    def __post_init__(self) -> None:
+        if self.resolution < 8 or self.n_views < 1 or self.max_grid < 4:
+            raise ValueError("resolution must be ≥ 8, n_views ≥ 1 and max_grid ≥ 4")
+
+
+def choose_grid(cfg: DMTetFitConfig, planned: int | None) -> int:
+    grid = cfg.grid if cfg.grid is not None else (planned or cfg.max_grid)
+    return max(8, min(grid, cfg.max_grid))
+
+
+class DMTetTask:
+    def __init__(self, cfg: DMTetFitConfig, target: ReferenceTarget, suite: PriorSuite, dmtet: DMTet,
+                 texture: TextureField, device: torch.device) -> None:
+        self.cfg, self.target, self.suite, self.device = cfg, target, suite, device
+        self.dmtet, self.texture = dmtet, texture
+        self.guidance = cfg.guidance.build()
+        self.schedule = NoiseSchedule()
+        self.opt = adam([
+            {"params": [dmtet.sdf], "lr": cfg.lr_sdf},
+            {"params": [dmtet.deform], "lr": cfg.lr_deform},
+            {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
+            {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
+        ])
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"dmtet": self.opt}
+
+    def mesh(self) -> Mesh:
+        try:
+            return self.dmtet()
+        except (EmptySurfaceError, NonFiniteFieldError) as exc:
+            raise BadStep(str(exc)) from exc
+
+    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+        cfg, r = self.cfg, self.cfg.resolution
+        mesh = self.mesh()
+        if mesh.num_faces == 0:
+            raise BadStep("the DMTet surface is empty")
+        ref = render_mesh(mesh, self.target.camera, r, r, self.texture)
+        cams = novel_cameras(cfg.n_views, generator, self.device)
+        novel = render_mesh(mesh, cams, r, r, self.texture).rgb_chw()
+        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel), self.schedule, novel, step,
+                              ref.rgb_chw(), self.target.rgb, generator)
+        m = mask_loss(ref.opacity_chw(), self.target.mask)
+        lap, nc = laplacian_smoothness(mesh), normal_consistency(mesh)
+        reg = self.dmtet.sdf_regulariser()
+        px = pixels(r)
+        loss = (out.loss + out.finetune_loss + cfg.mask_weight * m
+                + px * (cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc + cfg.sdf_reg_weight * reg))
+        terms = {"guidance": out.loss.detach(), "mask_bce": m.detach(), "laplacian": lap.detach(),
+                 "normal_consistency": nc.detach(), "sdf_reg": reg.detach()}
+        return StepOutput(loss, terms, out.nonfinite_prior_values)
+
+    def after_step(self, ok: bool) -> None:
+        self.suite.after_step(ok)
+
+    def state(self) -> dict[str, Any]:
+        return {"dmtet": self.dmtet.state_dict(), "texture": self.texture.state_dict(), "opt": self.opt.state_dict(),
+                "priors": self.suite.state()}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        self.dmtet.load_state_dict(state["dmtet"])
+        self.texture.load_state_dict(state["texture"])
+        self.opt.load_state_dict(state["opt"])
+        self.suite.load_state(state["priors"])
+
+    @torch.no_grad()
+    def render_eval(self, cameras: Any, size: int | None = None) -> Any:
+        r = size or self.cfg.resolution
+        return render_mesh(self.mesh(), cameras, r, r, self.texture)
+
+    def evaluate(self) -> dict[str, float]:
+        try:
+            return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+        except BadStep:
+            return {"ref_psnr": float("nan")}
+
+
+def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_path: Path, cfg: DMTetFitConfig,
+                   device: torch.device, generator: torch.Generator) -> float:
+    """SDF from the NeRF density, texture field fitted to its albedo; returns the fit MSE."""
+    nerf, _, _ = load_module(nerf_path, NerfField, NerfConfig, device)
+    nerf.update_step(1 << 30)  # every level active, as at the end of stage 1a
+    with torch.no_grad():
+        dmtet.init_from_density(nerf.density, cfg.density_threshold)
+        mesh = dmtet()
+        pts = jittered_surface_points(mesh.vertices, cfg.colour_fit_points, 2 * dmtet.config.cell_size, generator)
+        colours = torch.cat([nerf.query(p).albedo for p in pts.split(1 << 16)])
+    return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator)
+
+
+def init_from_asset(dmtet: DMTet, texture: TextureField, asset: Path, cfg: DMTetFitConfig,
+                    device: torch.device, generator: torch.Generator) -> float:
+    """SDF sign from the asset's winding number (inside ≥ ½), texture fitted to its baked colours."""
+    textured = load_textured(asset).to(device)
+    shape = textured.mesh
+    if shape.num_faces > cfg.init_mesh_max_faces:  # the winding number is O(points × faces)
+        shape = cluster_decimate(shape, cfg.init_mesh_max_faces)
+    extent = float(textured.vertices.abs().max())
+    if extent > dmtet.config.half_extent:
+        raise ValueError(f"{asset}: the mesh reaches {extent:.2f} but the grid spans ±{dmtet.config.half_extent}; "
+                         "scale it into the unit cube (the pipeline's convention) before refining")
+    with torch.no_grad():
+        dmtet.init_from_density(lambda p: winding_number(shape, p), threshold=0.5)
+    pts, colours = sample_surface(textured, cfg.colour_fit_points, generator)
+    return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator)
+
+
+def save_mesh(path: Path, mesh: Mesh) -> Path:
+    v, f = mesh.vertices.detach().float().cpu().numpy(), mesh.faces.detach().cpu().numpy().astype(np.int64)
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, vertices=v, faces=f)
+
+    return atomic_write(path, write)
+
+
+def load_mesh(path: Path, device: torch.device) -> Mesh:
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path} is missing: run the dmtet stage first")
+    with np.load(path) as data:
+        return Mesh(torch.from_numpy(data["vertices"]).to(device), torch.from_numpy(data["faces"]).to(device))
+
+
+def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
+              nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
+              device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+              progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``."""
+    if (nerf_dir is None) == (init_mesh is None):
+        raise ValueError("give exactly one of nerf_dir (the NeRF stage's output) or init_mesh (a GLB/OBJ)")
+    dev = pick_device(device)
+    generator = torch.Generator().manual_seed(seed + 1)
+    torch.manual_seed(seed + 1)
+    grid = choose_grid(cfg, planned_grid)
+    dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale), device=dev)
+    texture = TextureField(cfg.texture, generator=generator).to(dev)
+    if init_mesh is not None:
+        fit_mse = init_from_asset(dmtet, texture, Path(init_mesh), cfg, dev, generator)
+        notes = [f"initialised from {Path(init_mesh).name} (winding number) instead of a NeRF"]
+    else:
+        fit_mse = init_from_nerf(dmtet, texture, Path(nerf_dir) / NERF_FILE, cfg, dev, generator)
+        notes = []
+    target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
+    suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
+    try:
+        task = DMTetTask(cfg, target, suite, dmtet, texture, dev)
+        result = run_loop(task, cfg.loop, generator, "dmtet", checkpoint_dir, progress)
+        mesh = task.mesh()
+        require_finite_output("dmtet", {"vertices": mesh.vertices, **dict(texture.state_dict())})
+        save_mesh(out_dir / MESH_FILE, mesh)
+        save_module(out_dir / TEXTURE_FILE, texture, cfg.texture)
+        atomic_write(out_dir / DMTET_FILE, lambda tmp: torch.save({"grid": grid, "state": dmtet.state_dict()}, tmp))
+        pv = cfg.preview_size
+        ref = task.render_eval(target.camera, pv).rgb_chw()
+        views = task.render_eval(turntable(3, 15.0).to(dev), pv).rgb_chw()
+        photo = ReferenceTarget.load(reference_dir, pv, dev).rgb[0]
+        save_strip(out_dir / PREVIEW_FILE, [photo, ref[0], *views], pv)
+        write_log(out_dir, result)
+        metrics = loop_metrics(result) | {"grid": grid, "faces": mesh.num_faces, "vertices": mesh.num_vertices,
+                                          "colour_fit_mse": round(fit_mse, 6)}
+        return StageResult(metrics, suite.description, str(dev), notes)
+    finally:
+        suite.close()

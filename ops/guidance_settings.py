@@ -1,0 +1,82 @@
+"""The guidance knobs of a stage as flat, overridable settings; ``build()`` gives Algorithm 1's config.
+
+Every row of the paper's ablations is a setting here (no code edits): Base is ``use_2d=false`` or
+``k2d=0``, the full-pass 2D prior ``r=0``, high-pass without fine-tuning ``mode_2d=sds``, the
+fine-tuned 3D prior ``mode_3d=vsd``, and the k2D / r sweeps set ``k2d`` / ``r``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from morpheus_core.diffusion import TimestepRange
+from morpheus_core.guidance import GuidanceConfig, Mode
+from morpheus_core.guidance_presets import (
+    CFG_2D,
+    CFG_3D,
+    CFG_LORA,
+    HIGH_PASS_R,
+    K_2D,
+    K_3D,
+    LAMBDA_C,
+    PRIOR_2D,
+    PRIOR_3D,
+    SIGMA,
+    term_2d,
+    term_3d,
+)
+
+
+@dataclass(frozen=True)
+class GuidanceSettings:
+    """t ∈ [t_lo, t_hi]; with ``t_hi_start`` set, the upper bound starts there and drops to
+    ``t_hi`` at ``anneal_step`` (the paper: 0.98 → 0.5 at step 5k of the NeRF stage)."""
+
+    lambda_c: float = LAMBDA_C
+    sigma: float = SIGMA
+    k3d: float = K_3D
+    mode_3d: Mode = "sds"
+    cfg_3d: float = CFG_3D
+    t_lo: float = 0.02
+    t_hi: float = 0.5
+    t_hi_start: float | None = None
+    anneal_step: int = 0
+    use_2d: bool = False
+    k2d: float = K_2D
+    r: float = HIGH_PASS_R
+    mode_2d: Mode = "vsd"
+    cfg_2d: float = CFG_2D
+    cfg_lora: float = CFG_LORA
+    grad_clip: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode_3d not in ("sds", "vsd") or self.mode_2d not in ("sds", "vsd"):
+            raise ValueError("mode_3d and mode_2d must be 'sds' or 'vsd'")
+        if not 0.0 <= self.r <= 1.0:
+            raise ValueError(f"r must lie in [0, 1], got {self.r}")
+        self.build()  # validates every value now, not at the first step
+
+    def t_range(self) -> TimestepRange:
+        if self.t_hi_start is None:
+            return TimestepRange(self.t_lo, self.t_hi)
+        start = max(self.anneal_step - 1, 0)
+        return TimestepRange(self.t_lo, self.t_hi_start, hi_end=self.t_hi, anneal_start=start,
+                             anneal_end=max(self.anneal_step, start))
+
+    @property
+    def roles(self) -> tuple[str, ...]:
+        return (PRIOR_3D, PRIOR_2D) if self.use_2d else (PRIOR_3D,)
+
+    @property
+    def vsd_roles(self) -> tuple[str, ...]:
+        modes = {PRIOR_3D: self.mode_3d, PRIOR_2D: self.mode_2d}
+        return tuple(role for role in self.roles if modes[role] == "vsd" and self.is_active(role))
+
+    def is_active(self, role: str) -> bool:
+        return (self.k3d > 0) if role == PRIOR_3D else (self.use_2d and self.k2d > 0 and self.r < 1.0)
+
+    def build(self) -> GuidanceConfig:
+        terms = [term_3d(self.mode_3d, self.k3d, self.t_range(), self.cfg_3d, self.cfg_lora)]
+        if self.use_2d:
+            terms.append(term_2d(self.mode_2d, self.k2d, self.r, self.t_range(), self.cfg_2d, self.cfg_lora))
+        return GuidanceConfig(tuple(terms), self.lambda_c, self.sigma, self.grad_clip)

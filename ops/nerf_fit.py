@@ -1,0 +1,184 @@
+"""Stage 1a: fit a hash-grid NeRF to the photo under the 3D prior (SDS, t annealed).
+
+Each step renders the reference view and ``n_views`` random orbit views. The reference view gets
+the reference guidance of Algorithm 1 (‖x0 − y‖², weighted (1 − λc)/σ²) and a mask BCE on its
+opacity; the random views get the 3D prior's guidance; an optional smoothness term on the
+rendered normals of the random views tames floaters. Output: ``nerf.pt`` (field + occupancy
+grid), ``preview.png`` (photo | reference render | novel views), ``runlog.parquet``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from morpheus_core.cameras import turntable
+from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.geometry.hashgrid import HashGridConfig
+from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.guidance import hybrid_guidance
+from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
+from ops.guidance_settings import GuidanceSettings
+from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
+from ops.stage_common import (
+    PREVIEW_FILE,
+    ReferenceTarget,
+    StageResult,
+    loop_metrics,
+    mask_loss,
+    novel_cameras,
+    pick_device,
+    pixels,
+    reference_psnr,
+    require_finite_output,
+    save_module,
+    save_strip,
+    write_log,
+)
+
+NERF_FILE = "nerf.pt"
+CODE_VERSION = "nerf_fit-1"
+
+
+@dataclass(frozen=True)
+class NerfFitConfig:
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=10_000, checkpoint_every=500, log_every=50))
+    resolution: int = 128
+    n_views: int = 1
+    field: NerfConfig = field(default_factory=NerfConfig)
+    render: VolumeRenderConfig = field(default_factory=lambda: VolumeRenderConfig(n_samples=256, with_normals=False))
+    occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
+    use_occupancy: bool = True
+    guidance: GuidanceSettings = field(
+        default_factory=lambda: GuidanceSettings(t_hi_start=0.98, t_hi=0.5, anneal_step=5000))
+    lr_grid: float = 1e-2
+    lr_mlp: float = 1e-3
+    mask_weight: float = 1.0
+    normal_smooth_weight: float = 0.0
+    preview_size: int = 160
+
+    def __post_init__(self) -> None:
+        if self.resolution < 8 or self.n_views < 1:
+            raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
+
+
+def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
+    """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move."""
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+
+
+def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
+    """Squared differences of neighbouring rendered normals where both pixels are opaque."""
+    w = opacity.squeeze(-1)
+    dx = (normal[:, :, 1:] - normal[:, :, :-1]).pow(2).sum(-1) * w[:, :, 1:] * w[:, :, :-1]
+    dy = (normal[:, 1:] - normal[:, :-1]).pow(2).sum(-1) * w[:, 1:] * w[:, :-1]
+    return (dx.sum() + dy.sum()) / normal.shape[0]
+
+
+class NerfTask:
+    def __init__(self, cfg: NerfFitConfig, target: ReferenceTarget, suite: PriorSuite, device: torch.device,
+                 generator: torch.Generator) -> None:
+        self.cfg, self.target, self.suite, self.device = cfg, target, suite, device
+        self.field = NerfField(cfg.field, generator=generator).to(device)
+        self.occupancy = OccupancyGrid(cfg.occupancy, cfg.field.bbox_radius).to(device)
+        self.guidance = cfg.guidance.build()
+        self.schedule = NoiseSchedule()
+        self.opt = adam([
+            {"params": list(self.field.encoding.parameters()), "lr": cfg.lr_grid},
+            {"params": list(self.field.density_mlp.parameters()) + list(self.field.albedo_mlp.parameters()),
+             "lr": cfg.lr_mlp},
+        ])
+        self.eval_render = VolumeRenderConfig(n_samples=cfg.render.n_samples, stratified=False, with_normals=False,
+                                              chunk_points=cfg.render.chunk_points)
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"nerf": self.opt}
+
+    def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool) -> Any:
+        render_cfg = VolumeRenderConfig(self.cfg.render.n_samples, True, with_normals, self.cfg.render.max_density,
+                                        self.cfg.render.chunk_points)
+        occ = self.occupancy if self.cfg.use_occupancy else None
+        return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
+                             generator)
+
+    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+        cfg = self.cfg
+        self.field.update_step(step)
+        if cfg.use_occupancy:
+            self.occupancy.maybe_refresh(self.field, step, generator)
+        ref = self._render(self.target.camera, generator, False)
+        cams = novel_cameras(cfg.n_views, generator, self.device)
+        smooth = cfg.normal_smooth_weight > 0
+        novel = self._render(cams, generator, smooth)
+        novel_rgb = novel.rgb_chw()
+        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel_rgb), self.schedule, novel_rgb, step,
+                              ref.rgb_chw(), self.target.rgb, generator)
+        m = mask_loss(ref.opacity_chw(), self.target.mask)
+        loss = out.loss + cfg.mask_weight * m + out.finetune_loss
+        terms = {"guidance": out.loss.detach(), "mask_bce": m.detach()}
+        if smooth:
+            s = normal_smoothness(novel.normal, novel.opacity)
+            loss = loss + cfg.normal_smooth_weight * s
+            terms["normal_smooth"] = s.detach()
+        return StepOutput(loss, terms, out.nonfinite_prior_values)
+
+    def after_step(self, ok: bool) -> None:
+        self.suite.after_step(ok)
+
+    def state(self) -> dict[str, Any]:
+        return {"field": self.field.state_dict(), "occupancy": self.occupancy.state_dict(),
+                "opt": self.opt.state_dict(), "priors": self.suite.state()}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        self.field.load_state_dict(state["field"])
+        self.occupancy.load_state_dict(state["occupancy"])
+        self.opt.load_state_dict(state["opt"])
+        self.suite.load_state(state["priors"])
+
+    @torch.no_grad()
+    def render_eval(self, cameras: Any) -> Any:
+        occ = self.occupancy if self.cfg.use_occupancy else None
+        r = self.cfg.resolution
+        return render_volume(self.field, cameras, r, r, self.eval_render, 1.0, occ)
+
+    def evaluate(self) -> dict[str, float]:
+        return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+
+
+def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
+             device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+             progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 1a for a prepared reference folder; writes into ``out_dir``."""
+    dev = pick_device(device)
+    generator = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
+    suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
+    try:
+        task = NerfTask(cfg, target, suite, dev, generator)
+        result = run_loop(task, cfg.loop, generator, "nerf_fit", checkpoint_dir, progress)
+        task.field.update_step(cfg.loop.steps)
+        require_finite_output("nerf_fit", dict(task.field.state_dict()))
+        save_module(out_dir / NERF_FILE, task.field, cfg.field, {"occupancy": task.occupancy.state_dict()})
+        views = task.render_eval(turntable(3, 15.0).to(dev)).rgb_chw()
+        ref = task.render_eval(target.camera).rgb_chw()
+        save_strip(out_dir / PREVIEW_FILE, [target.rgb[0], ref[0], *views], cfg.preview_size)
+        write_log(out_dir, result)
+        metrics = loop_metrics(result) | {"ref_psnr": reference_psnr(ref, target),
+                                          "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
+        return StageResult(metrics, suite.description, str(dev))
+    finally:
+        suite.close()
+
+
+def small_field(levels: int = 8, log2_table: int = 15, hidden: int = 32) -> NerfConfig:
+    """A NeRF field for CPU presets: fewer levels, a smaller table, narrower MLPs."""
+    grid = HashGridConfig(n_levels=levels, log2_table_size=log2_table, per_level_scale=1.6,
+                          start_levels=max(1, levels // 2), start_step=0, update_steps=25)
+    return NerfConfig(grid=grid, hidden=hidden)

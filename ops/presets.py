@@ -1,0 +1,105 @@
+"""The one configuration object of a run, and its presets: ``paper``, ``standard``, ``draft``.
+
+- ``paper``: the paper's schedule (DESIGN.md §3): NeRF 10k steps at 128 px with 256 samples per
+  ray, DMTet 5k steps at 512 px on a grid up to 128, texture 5k steps at 512 px, 1024² texture.
+- ``standard``: the same method at about a quarter of the cost (fewer steps, 96/256 px).
+- ``draft``: small enough for a 2-core CPU (one photo end to end in a few minutes): tiny
+  renders, a small hash grid, short schedules. For previews, tests and the demo.
+
+Everything is overridable by dotted path (``ops.config_tree.apply_overrides``), e.g.
+``--set texture.guidance.k2d=0`` (the paper's Base row) or ``--set nerf.loop.steps=2000``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+
+from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
+from morpheus_core.texture import BakeConfig, TextureFieldConfig
+from ops.config_tree import apply_overrides
+from ops.dmtet import DMTetFitConfig
+from ops.guidance_settings import GuidanceSettings
+from ops.nerf_fit import NerfFitConfig, small_field
+from ops.optimise import LoopConfig
+from ops.plan import PlanConfig
+from ops.prior_suite import PriorsConfig
+from ops.reference import PrepareConfig
+from ops.texture_refine import TextureRefineConfig
+from ops.uv_bake import UVBakeConfig
+from morpheus_core.geometry.hashgrid import HashGridConfig
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    seed: int = 0
+    device: str = "auto"
+    prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    plan: PlanConfig = field(default_factory=PlanConfig)
+    priors: PriorsConfig = field(default_factory=PriorsConfig)
+    nerf: NerfFitConfig = field(default_factory=NerfFitConfig)
+    dmtet: DMTetFitConfig = field(default_factory=DMTetFitConfig)
+    texture: TextureRefineConfig = field(default_factory=TextureRefineConfig)
+    bake: UVBakeConfig = field(default_factory=UVBakeConfig)
+
+
+def _nerf_guidance(steps: int) -> GuidanceSettings:
+    """The paper anneals t's upper bound 0.98 → 0.5 half-way through the NeRF stage."""
+    return GuidanceSettings(t_hi_start=0.98, t_hi=0.5, anneal_step=max(1, steps // 2))
+
+
+def paper() -> PipelineConfig:
+    return PipelineConfig()
+
+
+def standard() -> PipelineConfig:
+    return PipelineConfig(
+        nerf=NerfFitConfig(loop=LoopConfig(3000, checkpoint_every=250, log_every=25), resolution=96,
+                           render=VolumeRenderConfig(n_samples=128, with_normals=False),
+                           guidance=_nerf_guidance(3000)),
+        dmtet=DMTetFitConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
+        texture=TextureRefineConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
+    )
+
+
+def draft() -> PipelineConfig:
+    small_texture = TextureFieldConfig(hashgrid=HashGridConfig(n_levels=8, log2_table_size=15, per_level_scale=1.6),
+                                       hidden_dim=32)
+    steps = 150
+    return PipelineConfig(
+        priors=PriorsConfig(proxy_grid=40),
+        nerf=NerfFitConfig(loop=LoopConfig(steps, checkpoint_every=25, log_every=10), resolution=48,
+                           field=small_field(), render=VolumeRenderConfig(n_samples=48, with_normals=False),
+                           occupancy=OccupancyGridConfig(resolution=32, update_every=8),
+                           guidance=_nerf_guidance(steps), preview_size=128),
+        dmtet=DMTetFitConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,
+                             texture=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13, preview_size=128),
+        texture=TextureRefineConfig(loop=LoopConfig(60, checkpoint_every=20, log_every=10), resolution=96,
+                                    preview_size=128),
+        bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
+                          eval_resolution=128),
+    )
+
+
+PRESETS: dict[str, Callable[[], PipelineConfig]] = {"paper": paper, "standard": standard, "draft": draft}
+
+
+def preset(name: str, overrides: Iterable[str] = ()) -> PipelineConfig:
+    """The named preset with ``key=value`` overrides applied (``ConfigError`` names bad keys)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return apply_overrides(PRESETS[name](), overrides)
+
+
+def with_steps(cfg: PipelineConfig, nerf: int, dmtet: int, texture: int) -> PipelineConfig:
+    """Shorter schedules with the same shape (tests, benchmarks): checkpoints and logs scale along."""
+    def loop(old: LoopConfig, steps: int) -> LoopConfig:
+        every = max(1, steps // 4)
+        return replace(old, steps=steps, checkpoint_every=every, log_every=max(1, steps // 8))
+
+    return replace(
+        cfg,
+        nerf=replace(cfg.nerf, loop=loop(cfg.nerf.loop, nerf), guidance=_nerf_guidance(nerf)),
+        dmtet=replace(cfg.dmtet, loop=loop(cfg.dmtet.loop, dmtet)),
+        texture=replace(cfg.texture, loop=loop(cfg.texture.loop, texture)),
+    )

@@ -1,0 +1,231 @@
+"""Which priors guide a stage, bound per step: the real ones from local weights, or the proxy.
+
+A stage asks for roles (``"3d"``, ``"2d"``) and which of them run VSD; the suite binds each role
+to a prior, its VSD counterpart and this step's condition, so the stage code is the same for the
+weight-free proxy and the real models.
+
+- ``proxy`` (weight-free): both roles are pulled towards renders of the photo's inflated
+  silhouette (``morpheus_core.proxy_shape``); VSD's counterpart is the current render (see
+  ``CurrentRenderCounterpart``). Used whenever the weights are missing, and said so loudly.
+- ``real``: Zero123 for ``3d``; SD1.5 + canny ControlNet + IP-Adapter for ``2d``; one LoRA per
+  object for every VSD role. Loaded once per process and device (``ModelCache``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from morpheus_core.cameras import Cameras
+from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.guidance import PriorBinding
+from morpheus_core.priors.lora import LoraSettings, ObjectLoras
+from morpheus_core.priors.proxy import CurrentRenderCounterpart, ProxyPrior
+from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
+from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.proxy_shape import InflatedProxy, InflationConfig
+
+log = logging.getLogger("morpheus3d")
+
+PriorKind = Literal["auto", "proxy", "real"]
+WEIGHT_FREE = "proxy (weight-free)"
+
+
+@dataclass(frozen=True)
+class PriorsConfig:
+    """``kind``: ``auto`` uses the real priors when every weight folder is complete, else the
+    proxy. ``models_root``: the weights folder (default ``$MORPHEUS_MODELS``)."""
+
+    kind: PriorKind = "auto"
+    models_root: str | None = None
+    dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
+    accel: Literal["eager", "cudagraph", "compile"] = "eager"
+    image2d_resolution: int = 512
+    lora_rank: int = 4
+    lora_lr: float = 1e-4
+    proxy_grid: int = 48
+    proxy_thickness: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("auto", "proxy", "real"):
+            raise ValueError(f"priors.kind must be auto, proxy or real, got {self.kind!r}")
+
+    def registry(self) -> ModelRegistry:
+        return ModelRegistry(root=Path(self.models_root)) if self.models_root else ModelRegistry()
+
+    def resolve(self, roles: tuple[str, ...]) -> str:
+        """``proxy`` or ``real`` for these roles; ``real`` asked for without weights raises."""
+        if self.kind == "proxy":
+            return "proxy"
+        reg = self.registry()
+        ready = all(reg.prior_ready(role) for role in roles)
+        if self.kind == "real" and not ready:
+            missing = [n for role in roles for n in PRIOR_MODELS[role] if not reg.status(n).present]
+            reg.require(missing[0])  # raises ModelMissingError naming the folder and its files
+        return "real" if ready else "proxy"
+
+    def runtime(self, device: torch.device) -> PriorRuntime:
+        rt = PriorRuntime.for_device(device, self.accel)
+        if self.dtype == "auto":
+            return rt
+        return PriorRuntime(rt.device, getattr(torch, self.dtype), channels_last=rt.channels_last, accel=rt.accel)
+
+
+@dataclass(frozen=True)
+class ProxyCondition:
+    target: Tensor
+    current: Tensor
+
+
+class PriorSuite:
+    """Binds roles to priors for one object; ``description`` goes to logs and manifests."""
+
+    description: str
+    weight_free: bool
+
+    def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
+        raise NotImplementedError
+
+    def after_step(self, ok: bool) -> None:
+        """Step the VSD counterparts after a good step; drop their gradients after a bad one."""
+
+    def state(self) -> dict[str, Any]:
+        return {}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        """Restore what ``state`` returned."""
+
+    def close(self) -> None:
+        """Release per-object state (adapters, cached references)."""
+
+
+class ProxySuite(PriorSuite):
+    weight_free = True
+
+    def __init__(self, proxy: InflatedProxy, roles: tuple[str, ...], vsd_roles: tuple[str, ...]) -> None:
+        self.proxy = proxy
+        self.roles = roles
+        schedule = NoiseSchedule()
+        self.prior = ProxyPrior(lambda c: c.target, schedule)
+        self.counterpart = CurrentRenderCounterpart(lambda c: c.current, schedule)
+        self.vsd_roles = vsd_roles
+        self.description = (f"{WEIGHT_FREE}: renders of the photo's inflated silhouette, photo on the front and "
+                            "mirrored on the back — diffusion weights are not installed (see `morpheus3d doctor`)")
+
+    def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
+        h, w = renders.shape[-2:]
+        target = self.proxy.target_images(cameras, h, w).to(device=renders.device, dtype=renders.dtype)
+        cond = ProxyCondition(target, renders.detach())
+        return {role: PriorBinding(self.prior, self.counterpart if role in self.vsd_roles else None, cond)
+                for role in self.roles}
+
+
+class ModelCache:
+    """Loaded real priors, kept for the process: loading is slow and the weights are frozen."""
+
+    _models: dict[tuple[str, str, str], Any] = {}  # noqa: RUF012 — a process-wide cache by design
+
+    @classmethod
+    def get(cls, role: str, cfg: PriorsConfig, runtime: PriorRuntime) -> Any:
+        key = (role, str(cfg.registry().resolved_root()[0]), repr(runtime))
+        if key not in cls._models:
+            from morpheus_core.priors.image2d import Image2DPrior, Image2DSettings
+            from morpheus_core.priors.zero123 import Zero123Prior
+
+            log.info("loading the %s prior (%s) on %s", role, ", ".join(PRIOR_MODELS[role]), runtime.device)
+            if role == "3d":
+                cls._models[key] = Zero123Prior.from_registry(cfg.registry(), runtime)
+            else:
+                settings = Image2DSettings(resolution=cfg.image2d_resolution)
+                cls._models[key] = Image2DPrior.from_registry(cfg.registry(), runtime, settings)
+        return cls._models[key]
+
+
+class RealSuite(PriorSuite):
+    weight_free = False
+
+    def __init__(self, cfg: PriorsConfig, device: torch.device, object_id: str, reference_rgba: Tensor,
+                 roles: tuple[str, ...], vsd_roles: tuple[str, ...]) -> None:
+        runtime = cfg.runtime(device)
+        self.object_id = object_id
+        self.models = {role: ModelCache.get(role, cfg, runtime) for role in roles}
+        for model in self.models.values():
+            model.set_reference(object_id, reference_rgba)
+        settings = LoraSettings(rank=cfg.lora_rank, lr=cfg.lora_lr)
+        self.loras: dict[str, ObjectLoras] = {}
+        for role in vsd_roles:
+            loras = ObjectLoras(self.models[role], settings)
+            loras.add(object_id)
+            self.loras[role] = loras
+        names = {"3d": "Zero123", "2d": "SD1.5 + canny ControlNet + IP-Adapter"}
+        self.description = " + ".join(f"{role}: {names[role]}" + (" (VSD LoRA)" if role in self.loras else "")
+                                      for role in roles)
+
+    def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
+        ids = [self.object_id] * renders.shape[0]
+        out = {}
+        for role, model in self.models.items():
+            if role == "3d":
+                cond = model.condition(ids, cameras.elevation, cameras.azimuth, cameras.distance)
+            else:
+                cond = model.condition(ids, renders.detach())
+            out[role] = PriorBinding(model, self.loras.get(role), cond)
+        return out
+
+    def after_step(self, ok: bool) -> None:
+        for loras in self.loras.values():
+            if ok:
+                loras.step()  # skips (and reports) an adapter whose own gradients are not finite
+            else:
+                for p in loras.parameters(self.object_id):
+                    p.grad = None
+
+    def state(self) -> dict[str, Any]:
+        return {role: {"adapter": loras.state_dict(self.object_id),
+                       "optimizer": loras.optimizer_state_dict(self.object_id)}
+                for role, loras in self.loras.items()}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        for role, loras in self.loras.items():
+            loras.load_state_dict(self.object_id, dict(state[role]["adapter"]))
+            loras.load_optimizer_state_dict(self.object_id, state[role]["optimizer"])
+
+    def close(self) -> None:
+        for loras in self.loras.values():
+            loras.remove(self.object_id)
+        for model in self.models.values():
+            model.forget(self.object_id)
+
+
+def read_rgba(reference_dir: Path, size: int) -> Tensor:
+    """The prepared reference's RGBA at ``size`` (4×S×S in [0, 1]); resized from the largest file."""
+    path = Path(reference_dir) / f"rgba_{size}.png"
+    if not path.is_file():
+        candidates = sorted(Path(reference_dir).glob("rgba_*.png"), key=lambda p: int(p.stem.split("_")[1]))
+        if not candidates:
+            raise FileNotFoundError(f"{reference_dir}: no rgba_<size>.png; run `morpheus3d prepare` first")
+        path = candidates[-1]
+    img = Image.open(path).convert("RGBA")
+    if img.size != (size, size):
+        img = img.resize((size, size), Image.Resampling.LANCZOS)
+    return torch.from_numpy(np.asarray(img, dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
+
+
+def build_suite(cfg: PriorsConfig, device: torch.device, reference_dir: Path, object_id: str,
+                roles: tuple[str, ...], vsd_roles: tuple[str, ...] = ()) -> PriorSuite:
+    """The suite for one object and stage; logs a loud warning when it falls back to the proxy."""
+    if cfg.resolve(roles) == "real":
+        return RealSuite(cfg, device, object_id, read_rgba(reference_dir, 256), roles, vsd_roles)
+    rgba = read_rgba(reference_dir, 256).permute(1, 2, 0).to(device)
+    proxy = InflatedProxy(rgba, InflationConfig(thickness=cfg.proxy_thickness, grid_resolution=cfg.proxy_grid))
+    suite = ProxySuite(proxy, roles, vsd_roles)
+    log.warning("NO DIFFUSION WEIGHTS: using the %s", suite.description)
+    return suite

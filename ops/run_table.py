@@ -1,0 +1,25 @@
+"""The per-photo outcome table that ``morpheus3d run`` prints."""
+
+from __future__ import annotations
+
+from assets_store.store import Store
+from ops.pipeline import PhotoOutcome, uses_weight_free
+from ops.uv_bake import ASSET_GLB
+
+
+def format_run_table(outcomes: list[PhotoOutcome], store: Store) -> str:
+    rows = [("PHOTO", "KEY", "OUTCOME", "STAGES", "TIME", "REF PSNR", "RESULT")]
+    for o in outcomes:
+        stages = " ".join(f"{s.stage}={s.status}" for s in o.stages)
+        psnr = o.metric("uv_bake", "ref_psnr")
+        result = o.error or str(store.stage_dir(o.key, "uv_bake") / ASSET_GLB)
+        rows.append((o.photo.name, o.key, o.status, stages, f"{o.wall_s:.0f}s",
+                     "-" if psnr is None else f"{psnr:.1f} dB", result))
+    widths = [max(len(r[c]) for r in rows) for c in range(6)]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r[:6], widths, strict=True)) + "  " + r[6] for r in rows]
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "cached", "failed")}
+    lines.append(", ".join(f"{v} {k}" for k, v in counts.items() if v) or "no photos")
+    if any(uses_weight_free(o) for o in outcomes):
+        lines.append("NOTE: no diffusion weights installed — the weight-free proxy prior guided these assets "
+                     "(see `morpheus3d doctor`).")
+    return "\n".join(line.rstrip() for line in lines)

@@ -1,0 +1,142 @@
+"""What the optimising stages share: the reference target, losses, saved fields, previews, results."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor, nn
+
+from assets_store.atomic import atomic_write, atomic_write_bytes
+from assets_store.runlog import write_runlog
+from morpheus_core.cameras import Cameras, OrbitConfig, reference_camera, sample_orbit
+from morpheus_core.metrics import psnr
+from ops.config_tree import from_dict, to_dict
+from ops.optimise import LoopResult
+from ops.prior_suite import read_rgba
+
+RUNLOG_FILE = "runlog.parquet"
+PREVIEW_FILE = "preview.png"
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto`` → CUDA when available, else CPU; an explicit CUDA request without CUDA fails."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} requested but CUDA is not available; use device=cpu or auto")
+    return dev
+
+
+@dataclass(frozen=True)
+class ReferenceTarget:
+    """The photo at the render resolution: RGB on white (1×3×R×R), mask (1×1×R×R), its camera."""
+
+    rgb: Tensor
+    mask: Tensor
+    camera: Cameras
+
+    @classmethod
+    def load(cls, reference_dir: Path, resolution: int, device: torch.device,
+             orbit: OrbitConfig | None = None) -> ReferenceTarget:
+        rgba = read_rgba(reference_dir, resolution).to(device)
+        alpha = rgba[3:4]
+        rgb = rgba[:3] * alpha + (1.0 - alpha)
+        return cls(rgb[None], alpha[None], reference_camera(orbit).to(device))
+
+
+def novel_cameras(n: int, generator: torch.Generator, device: torch.device,
+                  orbit: OrbitConfig | None = None) -> Cameras:
+    return sample_orbit(n, orbit, generator).to(device)
+
+
+def mask_loss(opacity: Tensor, mask: Tensor) -> Tensor:
+    """BCE of the reference-view opacity (B×1×H×W) against the mask, summed over pixels like the
+    paper's reference term ‖x0 − y‖², so weights keep their meaning across resolutions."""
+    o = opacity.float().clamp(1e-5, 1.0 - 1e-5)
+    return F.binary_cross_entropy(o, mask.float().expand_as(o), reduction="sum") / o.shape[0]
+
+
+def pixels(resolution: int) -> float:
+    """Regularisers that are means get multiplied by this, matching the summed image terms."""
+    return float(resolution * resolution)
+
+
+def reference_psnr(render_rgb: Tensor, target: ReferenceTarget) -> float:
+    value = psnr(render_rgb.detach().float().clamp(0, 1), target.rgb.float())
+    return value if math.isfinite(value) else 99.0
+
+
+def save_module(path: Path, module: nn.Module, config: Any, extra: dict[str, Any] | None = None) -> Path:
+    """A module's weights with the config that rebuilds it (JSON), atomically."""
+    payload = {"config": json.dumps(to_dict(config)), "state": module.state_dict(), **(extra or {})}
+    return atomic_write(path, lambda tmp: torch.save(payload, tmp))
+
+
+def load_module(path: Path, cls: type, config_cls: type, device: torch.device) -> tuple[nn.Module, Any, dict]:
+    """Rebuild a module saved by ``save_module``; returns (module, config, the whole payload)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path} is missing: run the stage that writes it first")
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    config = from_dict(config_cls, json.loads(payload["config"]))
+    module = cls(config)
+    module.load_state_dict(payload["state"])
+    return module.to(device), config, payload
+
+
+def to_uint8(image: Tensor) -> np.ndarray:
+    """3×H×W (or 1×H×W) in [0, 1] → H×W×3 uint8."""
+    img = image.detach().float().clamp(0, 1).cpu()
+    if img.shape[0] == 1:
+        img = img.expand(3, -1, -1)
+    return (img.permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def save_strip(path: Path, images: list[Tensor], size: int = 192) -> Path:
+    """Side-by-side PNG of 3×H×W images, each resized to ``size`` (what people look at first)."""
+    tiles = [F.interpolate(im[None].float().cpu(), size=(size, size), mode="bilinear", align_corners=False)[0]
+             for im in images]
+    strip = to_uint8(torch.cat(tiles, dim=-1))
+    buf = io.BytesIO()
+    Image.fromarray(strip).save(buf, format="PNG")
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+@dataclass
+class StageResult:
+    """What a stage reports back: metrics for the manifest, notes for people, the prior used."""
+
+    metrics: dict[str, Any]
+    prior: str
+    device: str
+    notes: list[str] = field(default_factory=list)
+
+
+def loop_metrics(result: LoopResult) -> dict[str, Any]:
+    last = result.history[-1] if result.history else {}
+    out: dict[str, Any] = {"steps_run": result.steps_run, "resumed_from_step": result.resumed_from,
+                           "loop_wall_s": round(result.wall_s, 3)}
+    out.update({f"guard_{k}": v for k, v in result.guards.as_dict().items()})
+    if "ref_psnr" in last:
+        out["ref_psnr"] = last["ref_psnr"]
+    return out
+
+
+def write_log(out_dir: Path, result: LoopResult) -> None:
+    write_runlog(Path(out_dir) / RUNLOG_FILE, result.history)
+
+
+def require_finite_output(name: str, tensors: dict[str, Tensor]) -> None:
+    """The last line of defence: an output with NaN/Inf is never written."""
+    for key, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise FloatingPointError(f"{name}: {key} holds NaN/Inf; refusing to write a broken output")

@@ -1,0 +1,146 @@
+"""Stage 2: refine the texture on the fixed DMTet geometry under the hybrid guidance.
+
+The 3D prior guides every frequency with SDS (k3D = 1) and the 2D image-prompt prior guides only
+the high frequencies (Λ keeps DCT indices ≥ r·D, r = 0.6) with VSD (k2D = 3, one LoRA per object,
+lr 1e-4), plus the frequency-domain reference loss of each filter on the reference view. When
+the plan found the object's texture flat (nothing above the high-pass band), the stage is a
+recorded pass-through: the DMTet stage's texture field is kept and the reason is noted.
+Output: ``texture_field.pt``, ``preview.png``, ``runlog.parquet``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from morpheus_core.cameras import turntable
+from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.guidance import hybrid_guidance
+from morpheus_core.render.mesh_renderer import render_mesh
+from morpheus_core.texture import TextureField, TextureFieldConfig
+from ops.dmtet import TEXTURE_FILE, load_mesh
+from ops.dmtet import MESH_FILE as DMTET_MESH
+from ops.guidance_settings import GuidanceSettings
+from ops.nerf_fit import adam
+from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
+from ops.stage_common import (
+    PREVIEW_FILE,
+    ReferenceTarget,
+    StageResult,
+    load_module,
+    loop_metrics,
+    novel_cameras,
+    pick_device,
+    reference_psnr,
+    require_finite_output,
+    save_module,
+    save_strip,
+    write_log,
+)
+
+CODE_VERSION = "texture_refine-1"
+
+
+@dataclass(frozen=True)
+class TextureRefineConfig:
+    """``follow_plan``: pass through when the plan skips high-pass refinement (flat textures)."""
+
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
+    resolution: int = 512
+    n_views: int = 1
+    guidance: GuidanceSettings = field(default_factory=lambda: GuidanceSettings(use_2d=True))
+    lr_grid: float = 1e-2
+    lr_mlp: float = 1e-3
+    follow_plan: bool = True
+    preview_size: int = 192
+
+    def __post_init__(self) -> None:
+        if self.resolution < 8 or self.n_views < 1:
+            raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
+
+
+class TextureTask:
+    def __init__(self, cfg: TextureRefineConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
+                 texture: TextureField, device: torch.device) -> None:
+        self.cfg, self.target, self.suite, self.mesh, self.texture = cfg, target, suite, mesh, texture
+        self.device = device
+        self.guidance = cfg.guidance.build()
+        self.schedule = NoiseSchedule()
+        self.opt = adam([
+            {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
+            {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
+        ])
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"texture": self.opt}
+
+    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+        r = self.cfg.resolution
+        ref = render_mesh(self.mesh, self.target.camera, r, r, self.texture)
+        cams = novel_cameras(self.cfg.n_views, generator, self.device)
+        novel = render_mesh(self.mesh, cams, r, r, self.texture).rgb_chw()
+        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel), self.schedule, novel, step,
+                              ref.rgb_chw(), self.target.rgb, generator)
+        terms = {"guidance": out.loss.detach(), "finetune": out.finetune_loss.detach()}
+        return StepOutput(out.loss + out.finetune_loss, terms, out.nonfinite_prior_values)
+
+    def after_step(self, ok: bool) -> None:
+        self.suite.after_step(ok)
+
+    def state(self) -> dict[str, Any]:
+        return {"texture": self.texture.state_dict(), "opt": self.opt.state_dict(), "priors": self.suite.state()}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        self.texture.load_state_dict(state["texture"])
+        self.opt.load_state_dict(state["opt"])
+        self.suite.load_state(state["priors"])
+
+    @torch.no_grad()
+    def render_eval(self, cameras: Any, size: int | None = None) -> Any:
+        r = size or self.cfg.resolution
+        return render_mesh(self.mesh, cameras, r, r, self.texture)
+
+    def evaluate(self) -> dict[str, float]:
+        return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+
+
+def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
+                   priors: PriorsConfig, object_id: str, plan_refine: bool = True, plan_reason: str = "",
+                   device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+                   progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 2 on the DMTet stage's mesh and texture field; pass through when the plan says so."""
+    dev = pick_device(device)
+    if cfg.follow_plan and not plan_refine:
+        shutil.copyfile(Path(dmtet_dir) / TEXTURE_FILE, out_dir / TEXTURE_FILE)
+        shutil.copyfile(Path(dmtet_dir) / PREVIEW_FILE, out_dir / PREVIEW_FILE)
+        return StageResult({"skipped": True, "steps_run": 0}, "none (pass-through)", str(dev),
+                           [f"pass-through: the plan skips high-pass refinement — {plan_reason}"])
+    generator = torch.Generator().manual_seed(seed + 2)
+    torch.manual_seed(seed + 2)
+    mesh = load_mesh(Path(dmtet_dir) / DMTET_MESH, dev)
+    texture, tex_cfg, _ = load_module(Path(dmtet_dir) / TEXTURE_FILE, TextureField, TextureFieldConfig, dev)
+    target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
+    suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
+    try:
+        task = TextureTask(cfg, target, suite, mesh, texture, dev)
+        before = task.evaluate()["ref_psnr"]
+        result = run_loop(task, cfg.loop, generator, "texture_refine", checkpoint_dir, progress)
+        require_finite_output("texture_refine", dict(texture.state_dict()))
+        save_module(out_dir / TEXTURE_FILE, texture, tex_cfg)
+        pv = cfg.preview_size
+        ref = task.render_eval(target.camera, pv).rgb_chw()
+        views = task.render_eval(turntable(3, 15.0).to(dev), pv).rgb_chw()
+        photo = ReferenceTarget.load(reference_dir, pv, dev).rgb[0]
+        save_strip(out_dir / PREVIEW_FILE, [photo, ref[0], *views], pv)
+        write_log(out_dir, result)
+        return StageResult(loop_metrics(result) | {"ref_psnr_before": before, "skipped": False},
+                           suite.description, str(dev))
+    finally:
+        suite.close()
