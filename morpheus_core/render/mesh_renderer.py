@@ -6,6 +6,9 @@ later bakes into the UV texture. Gradients reach the mesh vertices through the p
 barycentrics (inside the silhouette) and the edge-based anti-aliasing (at it), and reach the
 colour field through its inputs and outputs. The output is the shared ``RenderOutput``, laid out like
 the volume renderer's so NeRF and mesh stages feed the same losses.
+
+``render_shaded`` is the shared pipeline behind ``render_mesh`` and ``render_textured``
+(``morpheus_core.render.textured``): only how a covered pixel gets its colour differs.
 """
 
 from __future__ import annotations
@@ -20,9 +23,11 @@ from torch import Tensor
 from morpheus_core.cameras import Cameras
 from morpheus_core.geometry.mesh import Mesh, safe_normalize
 from morpheus_core.render.output import RenderOutput
-from morpheus_core.render.raster import RasterConfig, antialias, interpolate_sparse, rasterize
+from morpheus_core.render.raster import Fragments, RasterConfig, antialias, interpolate_sparse, rasterize
 
 ColourFn = Callable[[Tensor], Tensor]
+# (fragments, world points (N, 3)) -> colours (N, 3); see ``render_shaded``.
+Shader = Callable[[Fragments, Tensor], Tensor]
 
 
 @dataclass(frozen=True)
@@ -59,6 +64,21 @@ def render_mesh(mesh: Mesh, cameras: Cameras, height: int, width: int, colour_fn
     (B, H, W, 3). Returns rgb composited over the background, anti-aliased opacity, depth as the
     Euclidean distance from the camera centre (the volume renderer's convention) and unit
     world-space normals; depth and normals are 0 on background pixels."""
+    return render_shaded(mesh, cameras, height, width, lambda _frags, points: colour_fn(points),
+                         background=background, config=config, shader_name="colour_fn")
+
+
+def render_shaded(mesh: Mesh, cameras: Cameras, height: int, width: int, shader: Shader,
+                  background: float | Tensor = 1.0, config: MeshRenderConfig | None = None,
+                  shader_name: str = "shader") -> RenderOutput:
+    """The rasterise → shade → composite → anti-alias pipeline shared by ``render_mesh`` (colour from a
+    field at world points) and ``render_textured`` (colour from a UV texture), so both give the same
+    opacity, depth and normals, and silhouette gradients, for the same geometry.
+
+    ``shader(fragments, points (N, 3)) -> (N, 3)`` colours the N covered pixels of all views, in
+    ``fragments.pixel_index`` order; ``points`` are their interpolated world positions (the shader may
+    interpolate further vertex attributes with ``interpolate_sparse(attr, fragments)``).
+    ``shader_name`` names the callback in the error raised when it returns the wrong shape."""
     config = config or MeshRenderConfig()
     vertices = mesh.vertices
     if not vertices.is_floating_point():
@@ -73,9 +93,9 @@ def render_mesh(mesh: Mesh, cameras: Cameras, height: int, width: int, colour_fn
     frags = rasterize(clip, mesh.faces.to(vertices.device), height, width, config.raster)
 
     points = interpolate_sparse(vertices, frags)
-    colours = colour_fn(points)
+    colours = shader(frags, points)
     if colours.shape != points.shape:
-        raise ValueError(f"colour_fn must map (N, 3) points to (N, 3) colours, got {tuple(colours.shape)}")
+        raise ValueError(f"{shader_name} must map (N, 3) points to (N, 3) colours, got {tuple(colours.shape)}")
     if config.normals == "vertex":
         normals = safe_normalize(interpolate_sparse(mesh.vertex_normals(), frags))
     else:
