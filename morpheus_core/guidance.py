@@ -129,12 +129,18 @@ class GuidanceOutput:
     """``loss`` drives the 3D parameters θ; ``finetune_loss`` drives the VSD counterparts φ.
 
     They are independent (stop-gradients in between), so one ``(loss + finetune_loss).backward()``
-    is correct. ``stats`` holds detached tensors so reading them is the caller's choice of sync.
+    is correct. ``stats`` holds detached tensors so reading them is the caller's choice of sync;
+    the ``…/nonfinite`` entries count NaN/Inf values a prior returned (zeroed in the gradient).
     """
 
     loss: Tensor
     finetune_loss: Tensor
     stats: dict[str, Tensor]
+
+    @property
+    def nonfinite_prior_values(self) -> Tensor:
+        counts = [v for k, v in self.stats.items() if k.endswith("/nonfinite")]
+        return torch.stack(counts).sum() if counts else self.loss.new_zeros((), dtype=torch.int64)
 
 
 class _InjectGradient(torch.autograd.Function):

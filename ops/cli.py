@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override any setting, e.g. --set nerf.loop.steps=300 --set texture.guidance.k2d=0")
     run.add_argument("--device", help="cpu, cuda, cuda:1 … (default: auto)")
+    run.add_argument("--until", default="uv_bake", choices=["reference", "nerf_fit", "dmtet", "texture_refine",
+                                                             "uv_bake"], help="stop after this stage")
     run.add_argument("--list-keys", action="store_true", help="print every overridable setting and exit")
     return parser
 
@@ -158,7 +160,8 @@ def run_command(args: argparse.Namespace) -> int:
     outcomes = []
     for i, photo in enumerate(photos, 1):
         print(f"[{i}/{len(photos)}] {photo.name} -> {store.photo_dir(keys[photo.name])}", file=sys.stderr)
-        outcomes.append(run_photo(photo, store, cfg, args.preset, keys[photo.name], args.init_mesh, progress))
+        outcomes.append(run_photo(photo, store, cfg, args.preset, keys[photo.name], args.init_mesh, progress,
+                                  until=args.until))
     print(format_run_table(outcomes, store))
     return 1 if any(o.status == "failed" for o in outcomes) else 0
 

@@ -34,7 +34,6 @@ from ops.stage_common import (
     mask_loss,
     novel_cameras,
     pick_device,
-    pixels,
     reference_psnr,
     require_finite_output,
     save_module,
@@ -51,7 +50,7 @@ class NerfFitConfig:
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=10_000, checkpoint_every=500, log_every=50))
     resolution: int = 128
     n_views: int = 1
-    field: NerfConfig = field(default_factory=NerfConfig)
+    model: NerfConfig = field(default_factory=NerfConfig)
     render: VolumeRenderConfig = field(default_factory=lambda: VolumeRenderConfig(n_samples=256, with_normals=False))
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
     use_occupancy: bool = True
@@ -85,8 +84,8 @@ class NerfTask:
     def __init__(self, cfg: NerfFitConfig, target: ReferenceTarget, suite: PriorSuite, device: torch.device,
                  generator: torch.Generator) -> None:
         self.cfg, self.target, self.suite, self.device = cfg, target, suite, device
-        self.field = NerfField(cfg.field, generator=generator).to(device)
-        self.occupancy = OccupancyGrid(cfg.occupancy, cfg.field.bbox_radius).to(device)
+        self.field = NerfField(cfg.model, generator=generator).to(device)
+        self.occupancy = OccupancyGrid(cfg.occupancy, cfg.model.bbox_radius).to(device)
         self.guidance = cfg.guidance.build()
         self.schedule = NoiseSchedule()
         self.opt = adam([
@@ -165,7 +164,7 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
         result = run_loop(task, cfg.loop, generator, "nerf_fit", checkpoint_dir, progress)
         task.field.update_step(cfg.loop.steps)
         require_finite_output("nerf_fit", dict(task.field.state_dict()))
-        save_module(out_dir / NERF_FILE, task.field, cfg.field, {"occupancy": task.occupancy.state_dict()})
+        save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.state_dict()})
         views = task.render_eval(turntable(3, 15.0).to(dev)).rgb_chw()
         ref = task.render_eval(target.camera).rgb_chw()
         save_strip(out_dir / PREVIEW_FILE, [target.rgb[0], ref[0], *views], cfg.preview_size)

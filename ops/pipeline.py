@@ -99,7 +99,7 @@ class PhotoRun:
     def prior_kind(self, roles: tuple[str, ...]) -> str:
         return "injected" if self.suites else self.cfg.priors.resolve(roles)
 
-    def run_stage(self, stage: str, config: Any, inputs: dict[str, str],
+    def run_stage(self, stage: str, config: dict[str, Any], inputs: dict[str, str],
                   body: Callable[[Path, Path | None], StageResult]) -> Manifest:
         plain = json.loads(json.dumps(to_dict(config), default=str))
         fp = Fingerprint(inputs=inputs, config_hash=config_hash(plain), code_version=CODE_VERSIONS[stage])
@@ -118,7 +118,7 @@ class PhotoRun:
             wall = time.perf_counter() - start
             plan = read_plan(self.dir("reference")) if stage != "reference" else read_plan(writer.path)
             manifest = Manifest(
-                stage=stage, photo_key=self.key, fingerprint=fp, outputs={}, config=plain if isinstance(plain, dict) else {"values": plain},
+                stage=stage, photo_key=self.key, fingerprint=fp, outputs={}, config=plain,
                 metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
                 plan={} if plan is None else {"refine": plan.highpass_refinement.action,
                                               "grid": plan.dmtet_grid.value, "export_faces": plan.export.value,
@@ -162,11 +162,13 @@ class PhotoRun:
                                 "warnings": len(info.warnings), "plan": plan.summary()},
                                "none (segmentation)", "cpu", list(info.warnings))
 
-        return self.run_stage("reference", (cfg.prepare, cfg.plan), {"photo": file_sha256(self.photo)}, body)
+        config = {"prepare": cfg.prepare, "plan": cfg.plan}
+        return self.run_stage("reference", config, {"photo": file_sha256(self.photo)}, body)
 
     def nerf(self) -> Manifest:
         cfg = self.cfg
-        config = (cfg.nerf, cfg.priors, self.prior_kind(cfg.nerf.guidance.roles), cfg.seed)
+        config = {"nerf": cfg.nerf, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.nerf.guidance.roles),
+                  "seed": cfg.seed}
 
         def body(out: Path, ckpt: Path | None) -> StageResult:
             return nerf_fit.fit_nerf(self.dir("reference"), out, cfg.nerf, cfg.priors, self.key, cfg.device,
@@ -178,7 +180,8 @@ class PhotoRun:
         cfg = self.cfg
         plan = read_plan(self.dir("reference"))
         grid = plan.dmtet_grid.value if plan is not None else None
-        config = (cfg.dmtet, cfg.priors, self.prior_kind(cfg.dmtet.guidance.roles), cfg.seed, grid)
+        config = {"dmtet": cfg.dmtet, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.dmtet.guidance.roles),
+                  "seed": cfg.seed, "planned_grid": grid}
         inputs = {"reference": _output_digest(self.done["reference"])}
         if self.init_mesh is not None:
             inputs["init_mesh"] = file_sha256(self.init_mesh)
@@ -198,7 +201,8 @@ class PhotoRun:
         plan = read_plan(self.dir("reference"))
         refine = plan is None or plan.highpass_refinement.action != "skip"
         reason = "" if plan is None else plan.highpass_refinement.reason
-        config = (cfg.texture, cfg.priors, self.prior_kind(cfg.texture.guidance.roles), cfg.seed, refine)
+        config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
+                  "prior_kind": self.prior_kind(cfg.texture.guidance.roles)}
         inputs = {"reference": _output_digest(self.done["reference"]), "dmtet": _output_digest(self.done["dmtet"])}
 
         def body(out: Path, ckpt: Path | None) -> StageResult:
@@ -218,20 +222,26 @@ class PhotoRun:
             return uv_bake.bake_asset(self.dir("reference"), self.dir("dmtet"), self.dir("texture_refine"), out,
                                       cfg.bake, faces, cfg.device)
 
-        return self.run_stage("uv_bake", (cfg.bake, faces), inputs, body)
+        return self.run_stage("uv_bake", {"bake": cfg.bake, "planned_faces": faces}, inputs, body)
 
 
 def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str,
               init_mesh: Path | None = None, progress: ProgressFn | None = None,
-              suites: dict[str, Callable[[], PriorSuite]] | None = None) -> PhotoOutcome:
-    """Every stage for one photo; never raises for a failing photo (the outcome says why)."""
+              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "uv_bake") -> PhotoOutcome:
+    """Every stage for one photo, up to and including ``until``; never raises for a failing photo
+    (the outcome says why)."""
+    if until not in STAGES:
+        raise ValueError(f"until must be one of {STAGES}, got {until!r}")
     run = PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites)
     store.cleanup_staging(key)
-    steps = [run.reference] + ([] if init_mesh is not None else [run.nerf]) + [run.dmtet, run.texture, run.bake]
+    named = {"reference": run.reference, "nerf_fit": run.nerf, "dmtet": run.dmtet, "texture_refine": run.texture,
+             "uv_bake": run.bake}
+    wanted = STAGES[:STAGES.index(until) + 1]
+    steps = [named[s] for s in wanted if not (s == "nerf_fit" and init_mesh is not None)]
     for step in steps:
         try:
             step()
-        except Exception as exc:  # noqa: BLE001 — one photo's failure must not stop a catalog
+        except Exception as exc:
             stage = step.__name__
             log.error("%s: stage %s failed: %s", key, stage, exc)
             log.debug("%s", traceback.format_exc())

@@ -1,13 +1,12 @@
 """Prepare many photos: one reference folder each, a per-file outcome, never stop on a bad photo.
 
-Folder names are derived from file names (safe characters only, unique within the batch). A
+Folder names are the store's photo keys (safe characters only, unique within the batch). A
 photo whose folder already holds a valid reference of the same file content is left alone, so
 re-running over a growing catalog only does the new photos.
 """
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -15,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
+from assets_store.keys import assign_keys
 from ops.errors import PreparationError
 from ops.photo import EXTENSIONS, file_sha256
 from ops.plan import PlanConfig, plan_reference, read_plan
@@ -40,16 +40,10 @@ def list_photos(folder: Path) -> list[Path]:
 
 
 def folder_names(photos: Iterable[Path]) -> dict[Path, str]:
-    """A safe, unique folder name per photo: the stem, or the whole name when two stems clash."""
+    """The store's photo key per photo (``assets_store.keys``): safe, unique and stable."""
     photos = list(photos)
-
-    def safe(text: str) -> str:
-        return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("._") or "photo"
-
-    stems: dict[str, int] = {}
-    for p in photos:
-        stems[safe(p.stem)] = stems.get(safe(p.stem), 0) + 1
-    return {p: safe(p.stem) if stems[safe(p.stem)] == 1 else safe(p.name) for p in photos}
+    keys = assign_keys(p.name for p in photos)
+    return {p: keys[p.name] for p in photos}
 
 
 def _up_to_date(photo: Path, folder: Path) -> bool:

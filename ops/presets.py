@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
+from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import BakeConfig, TextureFieldConfig
 from ops.config_tree import apply_overrides
@@ -27,7 +28,6 @@ from ops.prior_suite import PriorsConfig
 from ops.reference import PrepareConfig
 from ops.texture_refine import TextureRefineConfig
 from ops.uv_bake import UVBakeConfig
-from morpheus_core.geometry.hashgrid import HashGridConfig
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def draft() -> PipelineConfig:
     return PipelineConfig(
         priors=PriorsConfig(proxy_grid=40),
         nerf=NerfFitConfig(loop=LoopConfig(steps, checkpoint_every=25, log_every=10), resolution=48,
-                           field=small_field(), render=VolumeRenderConfig(n_samples=48, with_normals=False),
+                           model=small_field(), render=VolumeRenderConfig(n_samples=48, with_normals=False),
                            occupancy=OccupancyGridConfig(resolution=32, update_every=8),
                            guidance=_nerf_guidance(steps), preview_size=128),
         dmtet=DMTetFitConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,

@@ -24,8 +24,8 @@ from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.texture import TextureField, TextureFieldConfig
-from ops.dmtet import TEXTURE_FILE, load_mesh
 from ops.dmtet import MESH_FILE as DMTET_MESH
+from ops.dmtet import TEXTURE_FILE, load_mesh
 from ops.guidance_settings import GuidanceSettings
 from ops.nerf_fit import adam
 from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop

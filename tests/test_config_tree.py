@@ -43,7 +43,7 @@ def test_overrides_are_typed_and_checked() -> None:
 def test_every_leaf_key_is_overridable() -> None:
     cfg = preset("draft")
     keys = flat_keys(cfg)
-    assert "texture.guidance.k2d" in keys and "nerf.field.grid.n_levels" in keys
+    assert "texture.guidance.k2d" in keys and "nerf.model.grid.n_levels" in keys
     assert len(keys) == len(set(keys)) > 60
 
 

@@ -148,7 +148,7 @@ def test_cli_folder_continues_past_a_bad_file(tmp_path: Path, capsys: pytest.Cap
     assert " ok " in rows["a.png"] and " ok " in rows["c.jpg"]
     assert captured.out.splitlines()[-1] == "2 ok, 1 failed"
     assert "[3/3] c.jpg" in captured.err  # progress on stderr
-    assert sorted(p.name for p in out.iterdir()) == ["a", "c"]
+    assert sorted(p.name for p in out.iterdir()) == ["a.png", "c.jpg"]  # the store's photo keys
     assert main(["prepare", str(photos), "--out", str(out), "--strict"]) == 1
     assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b"), "--strict"]) == 1
     assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b")]) == 0

@@ -1,0 +1,75 @@
+"""Kill and resume: a `morpheus3d run` killed with SIGKILL at a random point of each stage, then
+restarted, finishes with outputs bit-identical to an uninterrupted run (CPU, same seed)."""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from assets_store.store import Store
+from tests.pipeline_helpers import PHOTOS, ROOT, cli_overrides, output_hashes, tiny_config
+
+KEY = "mug.jpg"
+# More steps than the other pipeline tests, so that each stage spends long enough to be hit.
+CFG = tiny_config(nerf=16, dmtet=12, texture=12)
+UPSTREAM = {"nerf_fit": ("reference",), "dmtet": ("reference", "nerf_fit"),
+            "texture_refine": ("reference", "nerf_fit", "dmtet"),
+            "uv_bake": ("reference", "nerf_fit", "dmtet", "texture_refine")}
+
+
+def _command(out: Path) -> list[str]:
+    return [sys.executable, "-m", "ops.cli", "run", str(PHOTOS / "mug.jpg"), "--out", str(out), "--preset", "draft",
+            *cli_overrides(CFG)]
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> Store:
+    out = tmp_path_factory.mktemp("full")
+    subprocess.run(_command(out), env=_env(), check=True, capture_output=True, timeout=600)
+    return Store(out)
+
+
+def _started(store: Store, stage: str) -> bool:
+    """The stage has made progress worth killing: a checkpoint, or (bake) a staging folder."""
+    if stage == "uv_bake":
+        return any(store.staging_root(KEY).glob("uv_bake.*")) if store.staging_root(KEY).exists() else False
+    return any(store.checkpoint_dir(KEY, stage).glob("**/step-*.ckpt"))
+
+
+@pytest.mark.parametrize("stage", ["nerf_fit", "dmtet", "texture_refine", "uv_bake"])
+def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, uninterrupted: Store,
+                                                                tmp_path: Path) -> None:
+    store = Store(tmp_path / "store")
+    for done in UPSTREAM[stage]:  # finished upstream stages are cache hits, so the kill lands in `stage`
+        shutil.copytree(uninterrupted.stage_dir(KEY, done), store.stage_dir(KEY, done))
+    rng = random.Random(f"{stage}-{os.getpid()}")
+    proc = subprocess.Popen(_command(store.root), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not _started(store, stage) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(rng.uniform(0.0, 0.4))
+    killed = proc.poll() is None
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert killed, f"the run finished before it could be killed in {stage}; make the stage longer"
+    assert store.read_manifest(KEY, stage) is None or stage == "uv_bake"
+
+    subprocess.run(_command(store.root), env=_env(), check=True, capture_output=True, timeout=600)
+    for s in ("nerf_fit", "dmtet", "texture_refine", "uv_bake"):
+        assert output_hashes(store, KEY, s) == output_hashes(uninterrupted, KEY, s), s
+    if stage != "uv_bake":
+        resumed = store.read_manifest(KEY, stage).metrics["resumed_from_step"]
+        assert resumed is None or resumed > 0
+    assert not any(store.staging_root(KEY).iterdir())
