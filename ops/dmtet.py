@@ -8,7 +8,8 @@ then trained with the geometry. Losses: reference guidance + mask BCE on the ref
 
 ``--init-mesh`` (refining an existing asset, paper §5.6): the SDF sign comes from the mesh's
 winding number and the texture field is fitted to colours sampled from its baked texture.
-Output: ``mesh.npz`` (vertices, faces), ``texture_field.pt``, ``dmtet.pt``, preview, run log.
+Output: ``mesh.safetensors`` (vertices, faces), ``texture_field.safetensors``, ``dmtet.safetensors`` (SDF and
+deformation, rebuildable with its grid config), preview, run log.
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from assets_store.atomic import atomic_write
@@ -54,9 +54,9 @@ from ops.stage_common import (
     write_log,
 )
 
-MESH_FILE = "mesh.npz"
-TEXTURE_FILE = "texture_field.pt"
-DMTET_FILE = "dmtet.pt"
+MESH_FILE = "mesh.safetensors"
+TEXTURE_FILE = "texture_field.safetensors"
+DMTET_FILE = "dmtet.safetensors"
 CODE_VERSION = "dmtet-1"
 
 
@@ -83,7 +83,7 @@ class DMTetFitConfig:
     sdf_reg_weight: float = 0.01
     colour_fit_steps: int = 300
     colour_fit_points: int = 1 << 15
-    init_mesh_max_faces: int = 20_000
+    init_mesh_max_faces: int = 3000
     preview_size: int = 192
 
     def __post_init__(self) -> None:
@@ -195,20 +195,21 @@ def init_from_asset(dmtet: DMTet, texture: TextureField, asset: Path, cfg: DMTet
 
 
 def save_mesh(path: Path, mesh: Mesh) -> Path:
-    v, f = mesh.vertices.detach().float().cpu().numpy(), mesh.faces.detach().cpu().numpy().astype(np.int64)
+    """Vertices (float32) and faces (int64) as safetensors: reproducible bytes, no pickle."""
+    from safetensors.torch import save_file
 
-    def write(tmp: Path) -> None:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, vertices=v, faces=f)
-
-    return atomic_write(path, write)
+    tensors = {"vertices": mesh.vertices.detach().float().cpu().contiguous(),
+               "faces": mesh.faces.detach().long().cpu().contiguous()}
+    return atomic_write(path, lambda tmp: save_file(tensors, str(tmp)))
 
 
 def load_mesh(path: Path, device: torch.device) -> Mesh:
+    from safetensors.torch import load_file
+
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path} is missing: run the dmtet stage first")
-    with np.load(path) as data:
-        return Mesh(torch.from_numpy(data["vertices"]).to(device), torch.from_numpy(data["faces"]).to(device))
+    data = load_file(str(path))
+    return Mesh(data["vertices"].to(device), data["faces"].to(device))
 
 
 def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
@@ -239,7 +240,7 @@ def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: P
         require_finite_output("dmtet", {"vertices": mesh.vertices, **dict(texture.state_dict())})
         save_mesh(out_dir / MESH_FILE, mesh)
         save_module(out_dir / TEXTURE_FILE, texture, cfg.texture)
-        atomic_write(out_dir / DMTET_FILE, lambda tmp: torch.save({"grid": grid, "state": dmtet.state_dict()}, tmp))
+        save_module(out_dir / DMTET_FILE, dmtet, DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale))
         pv = cfg.preview_size
         ref = task.render_eval(target.camera, pv).rgb_chw()
         views = task.render_eval(turntable(3, 15.0).to(dev), pv).rgb_chw()

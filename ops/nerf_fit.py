@@ -3,7 +3,7 @@
 Each step renders the reference view and ``n_views`` random orbit views. The reference view gets
 the reference guidance of Algorithm 1 (‖x0 − y‖², weighted (1 − λc)/σ²) and a mask BCE on its
 opacity; the random views get the 3D prior's guidance; an optional smoothness term on the
-rendered normals of the random views tames floaters. Output: ``nerf.pt`` (field + occupancy
+rendered normals of the random views tames floaters. Output: ``nerf.safetensors`` (field + occupancy
 grid), ``preview.png`` (photo | reference render | novel views), ``runlog.parquet``.
 """
 
@@ -41,7 +41,7 @@ from ops.stage_common import (
     write_log,
 )
 
-NERF_FILE = "nerf.pt"
+NERF_FILE = "nerf.safetensors"
 CODE_VERSION = "nerf_fit-1"
 
 
@@ -164,7 +164,7 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
         result = run_loop(task, cfg.loop, generator, "nerf_fit", checkpoint_dir, progress)
         task.field.update_step(cfg.loop.steps)
         require_finite_output("nerf_fit", dict(task.field.state_dict()))
-        save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.state_dict()})
+        save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.density})
         views = task.render_eval(turntable(3, 15.0).to(dev)).rgb_chw()
         ref = task.render_eval(target.camera).rgb_chw()
         save_strip(out_dir / PREVIEW_FILE, [target.rgb[0], ref[0], *views], cfg.preview_size)

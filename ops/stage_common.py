@@ -76,21 +76,35 @@ def reference_psnr(render_rgb: Tensor, target: ReferenceTarget) -> float:
     return value if math.isfinite(value) else 99.0
 
 
-def save_module(path: Path, module: nn.Module, config: Any, extra: dict[str, Any] | None = None) -> Path:
-    """A module's weights with the config that rebuilds it (JSON), atomically."""
-    payload = {"config": json.dumps(to_dict(config)), "state": module.state_dict(), **(extra or {})}
-    return atomic_write(path, lambda tmp: torch.save(payload, tmp))
+def save_module(path: Path, module: nn.Module, config: Any, extra: dict[str, Tensor] | None = None) -> Path:
+    """A module's weights (+ ``extra`` tensors) as safetensors, with the config that rebuilds it in
+    the header. safetensors is byte-for-byte reproducible (torch.save is not across processes),
+    so equal weights give equal content hashes and downstream caches hold."""
+    from safetensors.torch import save_file
+
+    tensors = {f"state.{k}": v.detach().cpu().contiguous() for k, v in module.state_dict().items()}
+    tensors.update({f"extra.{k}": v.detach().cpu().contiguous() for k, v in (extra or {}).items()})
+    meta = {"config": json.dumps(to_dict(config), sort_keys=True)}
+    return atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
 
 
-def load_module(path: Path, cls: type, config_cls: type, device: torch.device) -> tuple[nn.Module, Any, dict]:
-    """Rebuild a module saved by ``save_module``; returns (module, config, the whole payload)."""
+def load_module(path: Path, cls: type, config_cls: type, device: torch.device
+                ) -> tuple[nn.Module, Any, dict[str, Tensor]]:
+    """Rebuild a module saved by ``save_module``; returns (module, config, extra tensors)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path} is missing: run the stage that writes it first")
-    payload = torch.load(path, map_location="cpu", weights_only=True)
-    config = from_dict(config_cls, json.loads(payload["config"]))
+    with safe_open(str(path), framework="pt") as fh:
+        meta = fh.metadata() or {}
+    if "config" not in meta:
+        raise ValueError(f"{path} has no config header: not written by this pipeline")
+    config = from_dict(config_cls, json.loads(meta["config"]))
+    tensors = load_file(str(path))
     module = cls(config)
-    module.load_state_dict(payload["state"])
-    return module.to(device), config, payload
+    module.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("state.")})
+    return module.to(device), config, {k[6:]: v for k, v in tensors.items() if k.startswith("extra.")}
 
 
 def to_uint8(image: Tensor) -> np.ndarray:

@@ -5,7 +5,7 @@ the high frequencies (Λ keeps DCT indices ≥ r·D, r = 0.6) with VSD (k2D = 3,
 lr 1e-4), plus the frequency-domain reference loss of each filter on the reference view. When
 the plan found the object's texture flat (nothing above the high-pass band), the stage is a
 recorded pass-through: the DMTet stage's texture field is kept and the reason is noted.
-Output: ``texture_field.pt``, ``preview.png``, ``runlog.parquet``.
+Output: ``texture_field.safetensors``, ``preview.png``, ``runlog.parquet``.
 """
 
 from __future__ import annotations

@@ -41,11 +41,11 @@ def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> Store:
     return Store(out)
 
 
-def _started(store: Store, stage: str) -> bool:
-    """The stage has made progress worth killing: a checkpoint, or (bake) a staging folder."""
+def _reached(store: Store, stage: str, step: int) -> bool:
+    """The stage has checkpointed ``step`` or later, or (bake, no steps) opened its staging folder."""
     if stage == "uv_bake":
-        return any(store.staging_root(KEY).glob("uv_bake.*")) if store.staging_root(KEY).exists() else False
-    return any(store.checkpoint_dir(KEY, stage).glob("**/step-*.ckpt"))
+        return store.staging_root(KEY).exists() and any(store.staging_root(KEY).glob("uv_bake.*"))
+    return any(int(p.stem.split("-")[1]) >= step for p in store.checkpoint_dir(KEY, stage).glob("**/step-*.ckpt"))
 
 
 @pytest.mark.parametrize("stage", ["nerf_fit", "dmtet", "texture_refine", "uv_bake"])
@@ -56,10 +56,13 @@ def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, unint
         shutil.copytree(uninterrupted.stage_dir(KEY, done), store.stage_dir(KEY, done))
     rng = random.Random(f"{stage}-{os.getpid()}")
     proc = subprocess.Popen(_command(store.root), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # A random checkpoint (first to third of four), then a random moment up to a few steps later.
+    loop = {"nerf_fit": CFG.nerf.loop, "dmtet": CFG.dmtet.loop, "texture_refine": CFG.texture.loop}.get(stage)
+    step = rng.randint(1, 3) * loop.checkpoint_every if loop else 0
     deadline = time.monotonic() + 300
-    while not _started(store, stage) and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(rng.uniform(0.0, 0.4))
+    while not _reached(store, stage, step) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    time.sleep(rng.uniform(0.0, 0.05))
     killed = proc.poll() is None
     proc.send_signal(signal.SIGKILL)
     proc.wait()
@@ -72,4 +75,5 @@ def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, unint
     if stage != "uv_bake":
         resumed = store.read_manifest(KEY, stage).metrics["resumed_from_step"]
         assert resumed is None or resumed > 0
-    assert not any(store.staging_root(KEY).iterdir())
+    staging = store.staging_root(KEY)
+    assert not staging.exists() or not any(staging.iterdir())  # the dead run's staging folder is gone
