@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo test lint doctor clean
+.PHONY: install demo demo-frequency test lint doctor clean
 
 install: $(STAMP)
 
@@ -23,8 +23,12 @@ $(STAMP): pyproject.toml
 	$(PY) -c "import cv2; cv2.ximgproc; cv2.saliency; print('cv2', cv2.__version__, 'contrib build OK')"
 	touch $(STAMP)
 
+# The main job on the bundled photos: every stage, draft preset (a few minutes on a CPU).
 demo: $(STAMP)
-	$(PY) benchmarks/frequency_demo.py --out outputs/demo
+	$(VENV)/bin/morpheus3d run examples/photos --out outputs/demo --preset draft
+
+demo-frequency: $(STAMP)
+	$(PY) benchmarks/frequency_demo.py --out outputs/frequency_demo
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
