@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # One device call: CUDA test pass of the device-aware tests, then the render and prior benchmarks.
 # Run on the lent GPU machine from the repository root, carrying .whl (../shared/scripts/gpu-wheels.sh):
-#   bash benchmarks/gpu_session.sh [quick|priors]   results -> benchmarks/results/*_h200.*, logs -> $OUT
+#   bash benchmarks/gpu_session.sh [quick|priors|stages]   results -> benchmarks/results/*_h200.*, logs -> $OUT
 # quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
 # priors: the CUDA prior tests and the full prior benchmark only.
+# stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
+#   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 set -uo pipefail
 mode=${1:-quick}
 out=${OUT:-/tmp/out}
@@ -12,6 +14,17 @@ pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 export PYTHONPATH=/tmp/site:. HF_HUB_OFFLINE=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt"
 python -c "import torch, diffusers, transformers, peft; print(torch.__version__, diffusers.__version__, transformers.__version__, peft.__version__)" >> "$out/gpu.txt"
+if [ "$mode" = stages ]; then
+  MORPHEUS_TEST_DEVICE=cuda timeout 300 python -m pytest -q -p no:cacheprovider tests/test_pipeline.py \
+    tests/test_optimise.py -k "not unsafe_photo" > "$out/pytest_cuda_pipeline.log" 2>&1
+  echo "pytest exit $?" >> "$out/pytest_cuda_pipeline.log"
+  for p in paper standard; do
+    timeout 150 python benchmarks/stage_speed.py --preset $p --device cuda --steps 30 --tag h200 \
+      --store outputs/gpu_ref > "$out/stage_speed_$p.log" 2>&1
+  done
+  tar czf "$out/results_h200.tgz" benchmarks/results/stage_speed_*h200*
+  exit 0
+fi
 if [ "$mode" = priors ]; then
   timeout 100 python -m pytest -q -p no:cacheprovider tests/test_cuda_priors.py > "$out/pytest_cuda_priors.log" 2>&1
   echo "pytest exit $?" >> "$out/pytest_cuda_priors.log"

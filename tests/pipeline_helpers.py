@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from assets_store.manifest import Manifest
@@ -12,8 +13,9 @@ ROOT = Path(__file__).resolve().parent.parent
 PHOTOS = ROOT / "examples" / "photos"
 
 # Small enough that one photo runs every stage in ~10 s on two cores, with checkpoints every 2 steps.
+DEVICE = os.environ.get("MORPHEUS_TEST_DEVICE", "cpu")  # the GPU session runs these on CUDA too
 TINY_OVERRIDES = [
-    "device=cpu", "priors.kind=proxy", "priors.proxy_grid=24",
+    f"device={DEVICE}", "priors.kind=proxy", "priors.proxy_grid=24",
     "nerf.resolution=24", "nerf.render.n_samples=24", "nerf.occupancy.resolution=16",
     "dmtet.resolution=40", "dmtet.max_grid=24", "dmtet.colour_fit_steps=40", "dmtet.colour_fit_points=2048",
     "texture.resolution=40", "texture.follow_plan=false",

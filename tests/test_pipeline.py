@@ -19,10 +19,10 @@ from ops.cli import main
 from ops.pipeline import STAGES, PhotoOutcome, run_photo
 from ops.presets import PipelineConfig, preset
 from ops.prior_suite import PriorsConfig, ProxySuite, build_suite
-from tests.pipeline_helpers import PHOTOS, manifest, output_hashes, tiny_config
+from tests.pipeline_helpers import DEVICE, PHOTOS, manifest, output_hashes, tiny_config
 
 KEY = "mug.jpg"
-DRAFT = ["device=cpu", "priors.kind=proxy"]
+DRAFT = [f"device={DEVICE}", "priors.kind=proxy"]
 # The draft preset's GLB, rendered from the reference camera at 128 px against the photo on white:
 # measured 20.2 dB on the mug (2 CPU cores, about a minute end to end).
 MIN_REF_PSNR = 18.0
@@ -61,7 +61,7 @@ def test_manifests_record_what_people_need(finished: tuple[Store, PhotoOutcome])
     store, _ = finished
     nerf = manifest(store, KEY, "nerf_fit")
     assert nerf.prior.startswith("proxy (weight-free)") and "weights are not installed" in nerf.prior
-    assert nerf.preset == "draft" and nerf.device == "cpu" and nerf.wall_time_s > 0
+    assert nerf.preset == "draft" and nerf.device.startswith(DEVICE) and nerf.wall_time_s > 0
     assert set(nerf.fingerprint.inputs) == {"reference"} and nerf.code_version.startswith("nerf_fit-")
     assert nerf.plan["grid"] >= 64 and "summary" in nerf.plan
     assert math.isfinite(nerf.metrics["ref_psnr"]) and nerf.metrics["guard_skipped_steps"] == 0
@@ -107,7 +107,7 @@ def test_a_prior_returning_nan_is_survived_counted_and_kept_out_of_outputs(tmp_p
     run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, until="reference")
 
     def flaky() -> ProxySuite:
-        suite = build_suite(PriorsConfig(kind="proxy", proxy_grid=24), torch.device("cpu"),
+        suite = build_suite(PriorsConfig(kind="proxy", proxy_grid=24), torch.device(DEVICE),
                             store.stage_dir(KEY, "reference"), KEY, ("3d",))
         assert isinstance(suite, ProxySuite)
         suite.prior = NaNOnSomeSteps(suite.prior)

@@ -1,0 +1,142 @@
+"""Time per optimisation step of each stage at a preset's sizes, with the weight-free proxy prior.
+
+This isolates the stage loop's own cost (rendering, losses, optimiser, guards) from the priors'
+(``benchmarks/prior_speed.py`` measures those): the two add up to a stage's step time. Steps run
+on a real prepared reference through the same task classes the stages use; the NeRF trained for
+these few steps feeds the DMTet stage, whose mesh feeds the texture stage.
+
+    python benchmarks/stage_speed.py --preset paper --device cuda --steps 40 --tag h200
+    python benchmarks/stage_speed.py --preset draft --device cpu --steps 10 --tag cpu
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import torch
+
+from assets_store.store import Store
+from morpheus_core.geometry.dmtet import DMTet, DMTetConfig
+from morpheus_core.texture import TextureField
+from ops.dmtet import DMTetTask, choose_grid, init_from_nerf
+from ops.nerf_fit import NERF_FILE, NerfTask
+from ops.optimise import LoopConfig, run_loop
+from ops.pipeline import run_photo
+from ops.plan import read_plan
+from ops.presets import preset
+from ops.prior_suite import build_suite
+from ops.stage_common import ReferenceTarget, save_module
+from ops.texture_refine import TextureTask
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
+    run_loop(task, LoopConfig(warmup, log_every=10_000, grad_clip=None), gen, "warmup")  # type: ignore[arg-type]
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    _sync(dev)
+    start = time.perf_counter()
+    res = run_loop(task, LoopConfig(steps, log_every=10_000, grad_clip=None), gen, "timed")  # type: ignore[arg-type]
+    _sync(dev)
+    ms = (time.perf_counter() - start) / steps * 1000
+    peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else float("nan")
+    return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped}
+
+
+def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path, store_root: Path) -> dict:
+    cfg = preset(preset_name, [f"device={device}", "priors.kind=proxy"])
+    dev = torch.device(device)
+    key = photo.name
+    store = Store(store_root)
+    outcome = run_photo(photo, store, cfg, preset_name, key, until="reference")
+    if outcome.error:
+        raise RuntimeError(outcome.error)
+    ref_dir = store.stage_dir(key, "reference")
+    gen = torch.Generator().manual_seed(0)
+    rows = {}
+
+    suite = build_suite(cfg.priors, dev, ref_dir, key, ("3d",))
+    nerf = NerfTask(cfg.nerf, ReferenceTarget.load(ref_dir, cfg.nerf.resolution, dev), suite, dev, gen)
+    rows["nerf_fit"] = _time(nerf, steps, warmup, dev, gen) | {"resolution": cfg.nerf.resolution,
+                                                                "samples": cfg.nerf.render.n_samples}
+    work = Path(tempfile.mkdtemp())
+    save_module(work / NERF_FILE, nerf.field, cfg.nerf.model, {"occupancy": nerf.occupancy.density})
+
+    plan = read_plan(ref_dir)
+    grid = choose_grid(cfg.dmtet, plan.dmtet_grid.value if plan else None)
+    dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.dmtet.deform_scale), device=dev)
+    texture = TextureField(cfg.dmtet.texture, generator=gen).to(dev)
+    init_from_nerf(dmtet, texture, work / NERF_FILE, cfg.dmtet, dev, gen)
+    dtask = DMTetTask(cfg.dmtet, ReferenceTarget.load(ref_dir, cfg.dmtet.resolution, dev), suite, dmtet, texture, dev)
+    faces = dtask.mesh().num_faces
+    rows["dmtet"] = _time(dtask, steps, warmup, dev, gen) | {"resolution": cfg.dmtet.resolution, "grid": grid,
+                                                             "faces": faces}
+
+    mesh = dtask.mesh()
+    mesh = type(mesh)(mesh.vertices.detach(), mesh.faces)
+    suite2 = build_suite(cfg.priors, dev, ref_dir, key, cfg.texture.guidance.roles, cfg.texture.guidance.vsd_roles)
+    ttask = TextureTask(cfg.texture, ReferenceTarget.load(ref_dir, cfg.texture.resolution, dev), suite2, mesh,
+                        texture, dev)
+    rows["texture_refine"] = _time(ttask, steps, warmup, dev, gen) | {"resolution": cfg.texture.resolution,
+                                                                      "faces": faces}
+    schedule = {"nerf_fit": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
+                "texture_refine": cfg.texture.loop.steps}
+    for stage, row in rows.items():
+        row["schedule_steps"] = schedule[stage]
+        row["projected_min"] = round(row["ms_per_step"] * schedule[stage] / 60000, 2)
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine()
+    return {"date": date.today().isoformat(), "device": name, "torch": torch.__version__, "preset": preset_name,
+            "photo": photo.name, "timed_steps": steps, "warmup_steps": warmup, "stages": rows,
+            "projected_total_min_without_priors": round(sum(r["projected_min"] for r in rows.values()), 2)}
+
+
+def to_markdown(res: dict) -> str:
+    lines = [f"# Stage step time, `{res['preset']}` preset, proxy prior — {res['device']}, {res['date']}", "",
+             f"torch {res['torch']}; {res['timed_steps']} timed steps after {res['warmup_steps']} warm-up, photo "
+             f"`{res['photo']}`. The proxy prior's cost is a mesh render of the target; the real priors' cost "
+             "is in `prior_speed_*.md` and adds to these.", "",
+             "| stage | size | ms/step | peak GiB | schedule steps | projected min |", "|---|---|---|---|---|---|"]
+    for stage, r in res["stages"].items():
+        size = f"{r['resolution']}²" + (f", {r['samples']} spp" if "samples" in r else "") + \
+            (f", grid {r['grid']}" if "grid" in r else "") + (f", {r['faces']} faces" if "faces" in r else "")
+        lines.append(f"| {stage} | {size} | {r['ms_per_step']} | {r['peak_gib']} | {r['schedule_steps']} | "
+                     f"{r['projected_min']} |")
+    lines += ["", f"Projected whole schedule without the priors: **{res['projected_total_min_without_priors']} min**."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="draft")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--photo", type=Path, default=ROOT / "examples" / "photos" / "mug.jpg")
+    p.add_argument("--store", type=Path, help="where the reference is prepared (default: a temp folder)")
+    p.add_argument("--tag", default="cpu")
+    args = p.parse_args(argv)
+    res = measure(args.preset, args.device, args.steps, args.warmup, args.photo,
+                  args.store or Path(tempfile.mkdtemp()))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stem = RESULTS / f"stage_speed_{args.preset}_{args.tag}"
+    stem.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
+    stem.with_suffix(".md").write_text(to_markdown(res))
+    print(to_markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
