@@ -63,13 +63,12 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
         views = render_textured(asset, turntable(cfg.turntable_views, 15.0).to(dev), r, r).rgb_chw()
     save_strip(out_dir / TURNTABLE_FILE, list(views), cfg.preview_size)
     save_strip(out_dir / REFERENCE_VIEW_FILE, [target.rgb[0], ref[0]], cfg.preview_size)
-    _, counts = edge_face_counts(asset.mesh)
     metrics = {
         "faces": int(asset.faces.shape[0]), "source_faces": int(mesh.num_faces),
         "vertices": int(asset.vertices.shape[0]), "uv_coverage": round(baked.coverage, 4),
         "texture_size": bake_cfg.texture_size,
-        # UV seams split vertices, so judge closedness on the welded source mesh.
-        "watertight": bool((edge_face_counts(mesh)[1] == 2).all()), "open_edges_after_split": int((counts == 1).sum()),
+        # UV seams split the exported vertices, so closedness is judged on the mesh before unwrapping.
+        "watertight": bool((edge_face_counts(mesh)[1] == 2).all()),
         "ref_psnr": reference_psnr(ref, target),
     }
     return StageResult(metrics, "none (bake)", str(dev), notes)
