@@ -22,7 +22,6 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write
-from morpheus_core.cameras import turntable
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
@@ -38,7 +37,6 @@ from ops.nerf_fit import NERF_FILE, adam
 from ops.optimise import BadStep, LoopConfig, ProgressFn, StepOutput, run_loop
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
-    PREVIEW_FILE,
     ReferenceTarget,
     StageResult,
     load_module,
@@ -50,7 +48,7 @@ from ops.stage_common import (
     reference_psnr,
     require_finite_output,
     save_module,
-    save_strip,
+    save_stage_preview,
     write_log,
 )
 
@@ -241,11 +239,7 @@ def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: P
         save_mesh(out_dir / MESH_FILE, mesh)
         save_module(out_dir / TEXTURE_FILE, texture, cfg.texture)
         save_module(out_dir / DMTET_FILE, dmtet, DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale))
-        pv = cfg.preview_size
-        ref = task.render_eval(target.camera, pv).rgb_chw()
-        views = task.render_eval(turntable(3, 15.0).to(dev), pv).rgb_chw()
-        photo = ReferenceTarget.load(reference_dir, pv, dev).rgb[0]
-        save_strip(out_dir / PREVIEW_FILE, [photo, ref[0], *views], pv)
+        save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
         metrics = loop_metrics(result) | {"grid": grid, "faces": mesh.num_faces, "vertices": mesh.num_vertices,
                                           "colour_fit_mse": round(fit_mse, 6)}

@@ -17,7 +17,6 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from morpheus_core.cameras import turntable
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
@@ -27,7 +26,6 @@ from ops.guidance_settings import GuidanceSettings
 from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
-    PREVIEW_FILE,
     ReferenceTarget,
     StageResult,
     loop_metrics,
@@ -37,7 +35,7 @@ from ops.stage_common import (
     reference_psnr,
     require_finite_output,
     save_module,
-    save_strip,
+    save_stage_preview,
     write_log,
 )
 
@@ -141,9 +139,9 @@ class NerfTask:
         self.suite.load_state(state["priors"])
 
     @torch.no_grad()
-    def render_eval(self, cameras: Any) -> Any:
+    def render_eval(self, cameras: Any, size: int | None = None) -> Any:
         occ = self.occupancy if self.cfg.use_occupancy else None
-        r = self.cfg.resolution
+        r = size or self.cfg.resolution
         return render_volume(self.field, cameras, r, r, self.eval_render, 1.0, occ)
 
     def evaluate(self) -> dict[str, float]:
@@ -165,11 +163,9 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
         task.field.update_step(cfg.loop.steps)
         require_finite_output("nerf_fit", dict(task.field.state_dict()))
         save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.density})
-        views = task.render_eval(turntable(3, 15.0).to(dev)).rgb_chw()
-        ref = task.render_eval(target.camera).rgb_chw()
-        save_strip(out_dir / PREVIEW_FILE, [target.rgb[0], ref[0], *views], cfg.preview_size)
+        save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
-        metrics = loop_metrics(result) | {"ref_psnr": reference_psnr(ref, target),
+        metrics = loop_metrics(result) | {"ref_psnr": task.evaluate()["ref_psnr"],
                                           "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
         return StageResult(metrics, suite.description, str(dev))
     finally:

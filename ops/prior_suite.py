@@ -21,7 +21,6 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from morpheus_core.proxy_shape import InflatedProxy, InflationConfig
 from PIL import Image
 from torch import Tensor
 
@@ -32,6 +31,7 @@ from morpheus_core.priors.lora import LoraSettings, ObjectLoras
 from morpheus_core.priors.proxy import CurrentRenderCounterpart, ProxyPrior
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.proxy_shape import InflatedProxy, InflationConfig
 
 log = logging.getLogger("morpheus3d")
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,8 +18,9 @@ from torch import Tensor, nn
 
 from assets_store.atomic import atomic_write, atomic_write_bytes
 from assets_store.runlog import write_runlog
-from morpheus_core.cameras import Cameras, OrbitConfig, reference_camera, sample_orbit
+from morpheus_core.cameras import Cameras, OrbitConfig, reference_camera, sample_orbit, turntable
 from morpheus_core.metrics import psnr
+from morpheus_core.render.output import RenderOutput
 from ops.config_tree import from_dict, to_dict
 from ops.optimise import LoopResult
 from ops.prior_suite import read_rgba
@@ -123,6 +125,16 @@ def save_strip(path: Path, images: list[Tensor], size: int = 192) -> Path:
     buf = io.BytesIO()
     Image.fromarray(strip).save(buf, format="PNG")
     return atomic_write_bytes(path, buf.getvalue())
+
+
+def save_stage_preview(out_dir: Path, reference_dir: Path, render: Callable[[Cameras, int], RenderOutput],
+                       size: int, device: torch.device) -> Path:
+    """``preview.png``: photo | reference-view render | three views around the object."""
+    photo = ReferenceTarget.load(reference_dir, size, device)
+    with torch.no_grad():
+        ref = render(photo.camera, size).rgb_chw()
+        views = render(turntable(3, 15.0).to(device), size).rgb_chw()
+    return save_strip(Path(out_dir) / PREVIEW_FILE, [photo.rgb[0], ref[0], *views], size)
 
 
 @dataclass

@@ -18,7 +18,6 @@ from typing import Any
 
 import torch
 
-from morpheus_core.cameras import turntable
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.guidance import hybrid_guidance
@@ -41,7 +40,7 @@ from ops.stage_common import (
     reference_psnr,
     require_finite_output,
     save_module,
-    save_strip,
+    save_stage_preview,
     write_log,
 )
 
@@ -134,11 +133,7 @@ def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: Tex
         result = run_loop(task, cfg.loop, generator, "texture_refine", checkpoint_dir, progress)
         require_finite_output("texture_refine", dict(texture.state_dict()))
         save_module(out_dir / TEXTURE_FILE, texture, tex_cfg)
-        pv = cfg.preview_size
-        ref = task.render_eval(target.camera, pv).rgb_chw()
-        views = task.render_eval(turntable(3, 15.0).to(dev), pv).rgb_chw()
-        photo = ReferenceTarget.load(reference_dir, pv, dev).rgb[0]
-        save_strip(out_dir / PREVIEW_FILE, [photo, ref[0], *views], pv)
+        save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
         return StageResult(loop_metrics(result) | {"ref_psnr_before": before, "skipped": False},
                            suite.description, str(dev))
