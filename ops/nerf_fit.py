@@ -57,7 +57,7 @@ class NerfFitConfig:
     lr_grid: float = 1e-2
     lr_mlp: float = 1e-3
     mask_weight: float = 1.0
-    normal_smooth_weight: float = 0.0
+    normal_smooth_weight: float = 0.05
     preview_size: int = 160
 
     def __post_init__(self) -> None:

@@ -188,3 +188,21 @@ def test_init_mesh_errors_name_the_file(tmp_path: Path) -> None:
     bad.write_bytes(b"not a mesh")
     out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), tiny_config(), "tiny", KEY, init_mesh=bad)
     assert out.status == "failed" and out.error.startswith("dmtet: MeshLoadError") and "broken.glb" in out.error
+
+
+def test_normal_smoothness_is_zero_for_flat_normals_and_enters_the_nerf_loss(tmp_path: Path) -> None:
+    from assets_store.runlog import read_runlog
+    from ops.nerf_fit import normal_smoothness
+
+    g = torch.Generator().manual_seed(5)
+    flat = torch.nn.functional.normalize(torch.randn(3, generator=g), dim=0).expand(2, 8, 8, 3)
+    opaque = torch.ones(2, 8, 8, 1)
+    assert float(normal_smoothness(flat, opaque)) == 0.0
+    noisy = torch.nn.functional.normalize(torch.randn(2, 8, 8, 3, generator=g), dim=-1)
+    assert float(normal_smoothness(noisy, opaque)) > 0.0 and float(normal_smoothness(noisy, opaque * 0)) == 0.0
+    store = Store(tmp_path / "store")
+    out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("nerf.normal_smooth_weight=0.05", nerf=3), "tiny", KEY,
+                    until="nerf_fit")
+    assert out.error is None, out.error
+    log = read_runlog(store.stage_dir(KEY, "nerf_fit") / "runlog.parquet")
+    assert all(r["normal_smooth"] is not None and r["normal_smooth"] > 0 for r in log)
