@@ -14,6 +14,7 @@ weight-free proxy and the real models.
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,25 +86,27 @@ class ProxyCondition:
     current: Tensor
 
 
-class PriorSuite:
+class PriorSuite(ABC):
     """Binds roles to priors for one object; ``description`` goes to logs and manifests."""
 
     description: str
     weight_free: bool
 
+    @abstractmethod
     def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
-        raise NotImplementedError
+        """Each role's prior, VSD counterpart and condition for this step's cameras and renders."""
 
-    def after_step(self, ok: bool) -> None:
+    # The no-op defaults below are right for suites without trainable state (the proxy).
+    def after_step(self, ok: bool) -> None:  # noqa: B027
         """Step the VSD counterparts after a good step; drop their gradients after a bad one."""
 
     def state(self) -> dict[str, Any]:
         return {}
 
-    def load_state(self, state: Mapping[str, Any]) -> None:
+    def load_state(self, state: Mapping[str, Any]) -> None:  # noqa: B027
         """Restore what ``state`` returned."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027
         """Release per-object state (adapters, cached references)."""
 
 
