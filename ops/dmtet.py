@@ -14,7 +14,6 @@ deformation, rebuildable with its grid config), preview, run log.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,6 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write
-from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
@@ -33,7 +31,8 @@ from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
 from ops.colour_fit import fit_colour_field, jittered_surface_points
 from ops.guidance_settings import GuidanceSettings
-from ops.nerf_fit import NERF_FILE, adam
+from ops.guided_task import GuidedTask
+from ops.nerf_fit import NERF_FILE
 from ops.optimise import BadStep, LoopConfig, ProgressFn, StepOutput, run_loop
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
@@ -45,7 +44,6 @@ from ops.stage_common import (
     novel_cameras,
     pick_device,
     pixels,
-    reference_psnr,
     require_finite_output,
     save_module,
     save_stage_preview,
@@ -94,22 +92,16 @@ def choose_grid(cfg: DMTetFitConfig, planned: int | None) -> int:
     return max(8, min(grid, cfg.max_grid))
 
 
-class DMTetTask:
+class DMTetTask(GuidedTask):
     def __init__(self, cfg: DMTetFitConfig, target: ReferenceTarget, suite: PriorSuite, dmtet: DMTet,
                  texture: TextureField, device: torch.device) -> None:
-        self.cfg, self.target, self.suite, self.device = cfg, target, suite, device
-        self.dmtet, self.texture = dmtet, texture
-        self.guidance = cfg.guidance.build()
-        self.schedule = NoiseSchedule()
-        self.opt = adam([
+        self.cfg, self.dmtet, self.texture = cfg, dmtet, texture
+        super().__init__(target, suite, cfg.guidance, {"dmtet": dmtet, "texture": texture}, [
             {"params": [dmtet.sdf], "lr": cfg.lr_sdf},
             {"params": [dmtet.deform], "lr": cfg.lr_deform},
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
-        ])
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"dmtet": self.opt}
+        ], device)
 
     def mesh(self) -> Mesh:
         try:
@@ -137,19 +129,6 @@ class DMTetTask:
                  "normal_consistency": nc.detach(), "sdf_reg": reg.detach()}
         return StepOutput(loss, terms, out.nonfinite_prior_values)
 
-    def after_step(self, ok: bool) -> None:
-        self.suite.after_step(ok)
-
-    def state(self) -> dict[str, Any]:
-        return {"dmtet": self.dmtet.state_dict(), "texture": self.texture.state_dict(), "opt": self.opt.state_dict(),
-                "priors": self.suite.state()}
-
-    def load_state(self, state: Mapping[str, Any]) -> None:
-        self.dmtet.load_state_dict(state["dmtet"])
-        self.texture.load_state_dict(state["texture"])
-        self.opt.load_state_dict(state["opt"])
-        self.suite.load_state(state["priors"])
-
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
         r = size or self.cfg.resolution
@@ -157,7 +136,7 @@ class DMTetTask:
 
     def evaluate(self) -> dict[str, float]:
         try:
-            return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+            return super().evaluate()
         except BadStep:
             return {"ref_psnr": float("nan")}
 

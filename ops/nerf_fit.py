@@ -9,7 +9,6 @@ grid), ``preview.png`` (photo | reference render | novel views), ``runlog.parque
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,12 +16,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
 from ops.guidance_settings import GuidanceSettings
+from ops.guided_task import GuidedTask
 from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
@@ -32,7 +31,6 @@ from ops.stage_common import (
     mask_loss,
     novel_cameras,
     pick_device,
-    reference_psnr,
     require_finite_output,
     save_module,
     save_stage_preview,
@@ -65,11 +63,6 @@ class NerfFitConfig:
             raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
 
 
-def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
-    """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move."""
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
-
-
 def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
     """Squared differences of neighbouring rendered normals where both pixels are opaque."""
     w = opacity.squeeze(-1)
@@ -78,24 +71,19 @@ def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
     return (dx.sum() + dy.sum()) / normal.shape[0]
 
 
-class NerfTask:
+class NerfTask(GuidedTask):
     def __init__(self, cfg: NerfFitConfig, target: ReferenceTarget, suite: PriorSuite, device: torch.device,
                  generator: torch.Generator) -> None:
-        self.cfg, self.target, self.suite, self.device = cfg, target, suite, device
+        self.cfg = cfg
         self.field = NerfField(cfg.model, generator=generator).to(device)
         self.occupancy = OccupancyGrid(cfg.occupancy, cfg.model.bbox_radius).to(device)
-        self.guidance = cfg.guidance.build()
-        self.schedule = NoiseSchedule()
-        self.opt = adam([
+        super().__init__(target, suite, cfg.guidance, {"field": self.field, "occupancy": self.occupancy}, [
             {"params": list(self.field.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(self.field.density_mlp.parameters()) + list(self.field.albedo_mlp.parameters()),
              "lr": cfg.lr_mlp},
-        ])
+        ], device)
         self.eval_render = VolumeRenderConfig(n_samples=cfg.render.n_samples, stratified=False, with_normals=False,
                                               chunk_points=cfg.render.chunk_points)
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"nerf": self.opt}
 
     def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool) -> Any:
         render_cfg = VolumeRenderConfig(self.cfg.render.n_samples, True, with_normals, self.cfg.render.max_density,
@@ -125,27 +113,11 @@ class NerfTask:
             terms["normal_smooth"] = s.detach()
         return StepOutput(loss, terms, out.nonfinite_prior_values)
 
-    def after_step(self, ok: bool) -> None:
-        self.suite.after_step(ok)
-
-    def state(self) -> dict[str, Any]:
-        return {"field": self.field.state_dict(), "occupancy": self.occupancy.state_dict(),
-                "opt": self.opt.state_dict(), "priors": self.suite.state()}
-
-    def load_state(self, state: Mapping[str, Any]) -> None:
-        self.field.load_state_dict(state["field"])
-        self.occupancy.load_state_dict(state["occupancy"])
-        self.opt.load_state_dict(state["opt"])
-        self.suite.load_state(state["priors"])
-
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
         occ = self.occupancy if self.cfg.use_occupancy else None
         r = size or self.cfg.resolution
         return render_volume(self.field, cameras, r, r, self.eval_render, 1.0, occ)
-
-    def evaluate(self) -> dict[str, float]:
-        return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
 
 
 def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,

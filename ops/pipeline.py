@@ -27,7 +27,7 @@ from ops import dmtet as dmtet_stage
 from ops import nerf_fit, texture_refine, uv_bake
 from ops.config_tree import to_dict
 from ops.optimise import ProgressEvent, ProgressFn
-from ops.plan import plan_reference, read_plan
+from ops.plan import StagePlan, plan_reference, read_plan
 from ops.presets import PipelineConfig
 from ops.prior_suite import WEIGHT_FREE, PriorSuite
 from ops.reference import prepare_reference
@@ -91,10 +91,18 @@ class PhotoRun:
         self.progress = progress
         self.suites = suites or {}
         self.done: dict[str, Manifest] = {}
+        self._plan: StagePlan | None = None
         self.outcome = PhotoOutcome(photo, key)
 
     def dir(self, stage: str) -> Path:
         return self.store.stage_dir(self.key, stage)
+
+    @property
+    def plan(self) -> StagePlan | None:
+        """The reference stage's plan, read once (after the reference stage is done)."""
+        if self._plan is None:
+            self._plan = read_plan(self.dir("reference"))
+        return self._plan
 
     def prior_kind(self, roles: tuple[str, ...]) -> str:
         return "injected" if self.suites else self.cfg.priors.resolve(roles)
@@ -116,7 +124,7 @@ class PhotoRun:
         with self.store.stage_writer(self.key, stage) as writer:
             result = body(writer.path, ckpt)
             wall = time.perf_counter() - start
-            plan = read_plan(self.dir("reference")) if stage != "reference" else read_plan(writer.path)
+            plan = self.plan if stage != "reference" else read_plan(writer.path)
             manifest = Manifest(
                 stage=stage, photo_key=self.key, fingerprint=fp, outputs={}, config=plain,
                 metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
@@ -178,7 +186,7 @@ class PhotoRun:
 
     def dmtet(self) -> Manifest:
         cfg = self.cfg
-        plan = read_plan(self.dir("reference"))
+        plan = self.plan
         grid = plan.dmtet_grid.value if plan is not None else None
         config = {"dmtet": cfg.dmtet, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.dmtet.guidance.roles),
                   "seed": cfg.seed, "planned_grid": grid}
@@ -198,7 +206,7 @@ class PhotoRun:
 
     def texture(self) -> Manifest:
         cfg = self.cfg
-        plan = read_plan(self.dir("reference"))
+        plan = self.plan
         refine = plan is None or plan.highpass_refinement.action != "skip"
         reason = "" if plan is None else plan.highpass_refinement.reason
         config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
@@ -214,7 +222,7 @@ class PhotoRun:
 
     def bake(self) -> Manifest:
         cfg = self.cfg
-        plan = read_plan(self.dir("reference"))
+        plan = self.plan
         faces = plan.export.value if plan is not None else None
         inputs = {k: _output_digest(self.done[k]) for k in ("reference", "dmtet", "texture_refine")}
 

@@ -11,14 +11,12 @@ Output: ``texture_field.safetensors``, ``preview.png``, ``runlog.parquet``.
 from __future__ import annotations
 
 import shutil
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.mesh_renderer import render_mesh
@@ -26,7 +24,7 @@ from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.dmtet import MESH_FILE as DMTET_MESH
 from ops.dmtet import TEXTURE_FILE, load_mesh
 from ops.guidance_settings import GuidanceSettings
-from ops.nerf_fit import adam
+from ops.guided_task import GuidedTask
 from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
@@ -37,7 +35,6 @@ from ops.stage_common import (
     loop_metrics,
     novel_cameras,
     pick_device,
-    reference_psnr,
     require_finite_output,
     save_module,
     save_stage_preview,
@@ -65,20 +62,14 @@ class TextureRefineConfig:
             raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
 
 
-class TextureTask:
+class TextureTask(GuidedTask):
     def __init__(self, cfg: TextureRefineConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
                  texture: TextureField, device: torch.device) -> None:
-        self.cfg, self.target, self.suite, self.mesh, self.texture = cfg, target, suite, mesh, texture
-        self.device = device
-        self.guidance = cfg.guidance.build()
-        self.schedule = NoiseSchedule()
-        self.opt = adam([
+        self.cfg, self.mesh, self.texture = cfg, mesh, texture
+        super().__init__(target, suite, cfg.guidance, {"texture": texture}, [
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
-        ])
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"texture": self.opt}
+        ], device)
 
     def step(self, step: int, generator: torch.Generator) -> StepOutput:
         r = self.cfg.resolution
@@ -90,24 +81,10 @@ class TextureTask:
         terms = {"guidance": out.loss.detach(), "finetune": out.finetune_loss.detach()}
         return StepOutput(out.loss + out.finetune_loss, terms, out.nonfinite_prior_values)
 
-    def after_step(self, ok: bool) -> None:
-        self.suite.after_step(ok)
-
-    def state(self) -> dict[str, Any]:
-        return {"texture": self.texture.state_dict(), "opt": self.opt.state_dict(), "priors": self.suite.state()}
-
-    def load_state(self, state: Mapping[str, Any]) -> None:
-        self.texture.load_state_dict(state["texture"])
-        self.opt.load_state_dict(state["opt"])
-        self.suite.load_state(state["priors"])
-
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
         r = size or self.cfg.resolution
         return render_mesh(self.mesh, cameras, r, r, self.texture)
-
-    def evaluate(self) -> dict[str, float]:
-        return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
 
 
 def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,

@@ -1,0 +1,67 @@
+"""What the three optimising stages' tasks share: their state, the prior suite's updates, evaluation.
+
+A subclass names its modules and optimiser groups and implements ``step`` and ``render_eval``; the
+checkpointed state (every module's state dict, the Adam moments, the priors' LoRA state), the VSD
+counterpart updates and the reference-view PSNR for the run log are the same for all of them.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.render.output import RenderOutput
+from ops.guidance_settings import GuidanceSettings
+from ops.optimise import StepOutput
+from ops.prior_suite import PriorSuite
+from ops.stage_common import ReferenceTarget, reference_psnr
+
+
+def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
+    """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move."""
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+
+
+class GuidedTask(ABC):
+    """A ``StageTask`` over ``modules`` trained by one Adam over ``groups`` under ``guidance``."""
+
+    def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings,
+                 modules: dict[str, nn.Module], groups: list[dict[str, Any]], device: torch.device) -> None:
+        self.target, self.suite, self.device = target, suite, device
+        self.modules = modules
+        self.guidance = guidance.build()
+        self.schedule = NoiseSchedule()
+        self.opt = adam(groups)
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"adam": self.opt}
+
+    @abstractmethod
+    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+        """One step's loss: the reference view and random views under the guidance."""
+
+    @abstractmethod
+    def render_eval(self, cameras: Any, size: int | None = None) -> RenderOutput:
+        """A deterministic render (no generator) for previews and the run log."""
+
+    def after_step(self, ok: bool) -> None:
+        self.suite.after_step(ok)
+
+    def state(self) -> dict[str, Any]:
+        return {**{name: m.state_dict() for name, m in self.modules.items()},
+                "opt": self.opt.state_dict(), "priors": self.suite.state()}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        for name, m in self.modules.items():
+            m.load_state_dict(state[name])
+        self.opt.load_state_dict(state["opt"])
+        self.suite.load_state(state["priors"])
+
+    def evaluate(self) -> dict[str, float]:
+        with torch.no_grad():
+            return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
