@@ -112,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override any setting, e.g. --set nerf.loop.steps=300 --set texture.guidance.k2d=0")
     run.add_argument("--device", help="cpu, cuda, cuda:1 … (default: auto)")
-    run.add_argument("--until", default="uv_bake", choices=["reference", "nerf_fit", "dmtet", "texture_refine",
-                                                             "uv_bake"], help="stop after this stage")
+    run.add_argument("--until", default="qa", choices=["reference", "nerf_fit", "dmtet", "texture_refine",
+                                                        "uv_bake", "qa"], help="stop after this stage")
     run.add_argument("--list-keys", action="store_true", help="print every overridable setting and exit")
     return parser
 

@@ -22,24 +22,25 @@ from typing import Any
 
 from assets_store.hashing import bytes_sha256, config_hash, file_sha256
 from assets_store.manifest import Fingerprint, Manifest
+from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops import dmtet as dmtet_stage
-from ops import nerf_fit, texture_refine, uv_bake
+from ops import nerf_fit, qa, texture_refine, uv_bake
 from ops.config_tree import to_dict
 from ops.optimise import ProgressEvent, ProgressFn
 from ops.plan import StagePlan, plan_reference, read_plan
 from ops.presets import PipelineConfig
 from ops.prior_suite import WEIGHT_FREE, PriorSuite
 from ops.reference import prepare_reference
-from ops.stage_common import StageResult
+from ops.stage_common import StageResult, save_mask_overlay
 
 log = logging.getLogger("morpheus3d")
 
-STAGES = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake")
+STAGES = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake", "qa")
 REFERENCE_CODE_VERSION = "reference-1"
 CODE_VERSIONS = {"reference": REFERENCE_CODE_VERSION, "nerf_fit": nerf_fit.CODE_VERSION,
                  "dmtet": dmtet_stage.CODE_VERSION, "texture_refine": texture_refine.CODE_VERSION,
-                 "uv_bake": uv_bake.CODE_VERSION}
+                 "uv_bake": uv_bake.CODE_VERSION, "qa": qa.CODE_VERSION}
 
 
 @dataclass
@@ -75,9 +76,22 @@ class PhotoOutcome:
         return None
 
 
-def _output_digest(manifest: Manifest) -> str:
+def output_digest(manifest: Manifest) -> str:
     """One hash for a stage's whole output (every file's content hash)."""
     return bytes_sha256(repr(sorted((k, v.sha256) for k, v in manifest.outputs.items())).encode())
+
+
+class MissingUpstreamError(RuntimeError):
+    """A stage was asked to run before the stage it reads from has a finished output."""
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What decides a stage's output (its config and input digests) and the body that makes it."""
+
+    config: dict[str, Any]
+    inputs: dict[str, str]
+    body: Callable[[Path, Path | None], StageResult]
 
 
 class PhotoRun:
@@ -93,9 +107,15 @@ class PhotoRun:
         self.done: dict[str, Manifest] = {}
         self._plan: StagePlan | None = None
         self.outcome = PhotoOutcome(photo, key)
+        self.hash_photo: Callable[[Path], str] = file_sha256
 
     def dir(self, stage: str) -> Path:
         return self.store.stage_dir(self.key, stage)
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        """The stages this photo goes through (``--init-mesh`` replaces the NeRF stage)."""
+        return tuple(s for s in STAGES if not (s == "nerf_fit" and self.init_mesh is not None))
 
     @property
     def plan(self) -> StagePlan | None:
@@ -104,13 +124,32 @@ class PhotoRun:
             self._plan = read_plan(self.dir("reference"))
         return self._plan
 
+    def upstream(self, stage: str) -> Manifest:
+        """The finished output of ``stage``: from this run, else from the store."""
+        if stage not in self.done:
+            manifest = self.store.read_manifest(self.key, stage)
+            if manifest is None:
+                raise MissingUpstreamError(
+                    f"{self.key}: stage {stage!r} has no finished output in {self.dir(stage)}; "
+                    f"run it first (morpheus3d run … --until {stage}, or materialise its Dagster asset)")
+            self.done[stage] = manifest
+        return self.done[stage]
+
+    def digest(self, stage: str) -> str:
+        return output_digest(self.upstream(stage))
+
     def prior_kind(self, roles: tuple[str, ...]) -> str:
         return "injected" if self.suites else self.cfg.priors.resolve(roles)
 
-    def run_stage(self, stage: str, config: dict[str, Any], inputs: dict[str, str],
-                  body: Callable[[Path, Path | None], StageResult]) -> Manifest:
-        plain = json.loads(json.dumps(to_dict(config), default=str))
-        fp = Fingerprint(inputs=inputs, config_hash=config_hash(plain), code_version=CODE_VERSIONS[stage])
+    def fingerprint(self, stage: str, spec: StageSpec | None = None) -> Fingerprint:
+        spec = spec or self.spec(stage)
+        plain = json.loads(json.dumps(to_dict(spec.config), default=str))
+        return Fingerprint(inputs=spec.inputs, config_hash=config_hash(plain), code_version=CODE_VERSIONS[stage])
+
+    def run(self, stage: str) -> Manifest:
+        """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
+        spec = self.spec(stage)
+        fp = self.fingerprint(stage, spec)
         cached = self.store.lookup(self.key, stage, fp)
         if cached is not None:
             self.outcome.stages.append(StageOutcome(stage, "cached", 0.0, cached))
@@ -118,15 +157,16 @@ class PhotoRun:
             self.done[stage] = cached
             return cached
         ckpt_root = self.store.checkpoint_dir(self.key, stage)
-        ckpt = ckpt_root / fp.config_hash[:12] / bytes_sha256(repr(sorted(inputs.items())).encode())[:12]
+        ckpt = ckpt_root / fp.config_hash[:12] / bytes_sha256(repr(sorted(spec.inputs.items())).encode())[:12]
         resumed = ckpt.is_dir() and any(ckpt.iterdir())
         start = time.perf_counter()
         with self.store.stage_writer(self.key, stage) as writer:
-            result = body(writer.path, ckpt)
+            result = spec.body(writer.path, ckpt)
             wall = time.perf_counter() - start
             plan = self.plan if stage != "reference" else read_plan(writer.path)
             manifest = Manifest(
-                stage=stage, photo_key=self.key, fingerprint=fp, outputs={}, config=plain,
+                stage=stage, photo_key=self.key, fingerprint=fp, outputs={},
+                config=json.loads(json.dumps(to_dict(spec.config), default=str)),
                 metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
                 plan={} if plan is None else {"refine": plan.highpass_refinement.action,
                                               "grid": plan.dmtet_grid.value, "export_faces": plan.export.value,
@@ -144,6 +184,23 @@ class PhotoRun:
         self.done[stage] = manifest
         return manifest
 
+    def status(self) -> dict[str, str]:
+        """Per stage: ``fresh`` (its output matches what this config and the current inputs would
+        make), ``stale`` (an output exists but was made from something else) or ``missing``.
+        Reads manifests only (no stage runs, no output re-hashing); downstream of a stale or
+        missing stage is never fresh."""
+        out: dict[str, str] = {}
+        upstream_ok = True
+        for stage in self.stages:
+            manifest = self.store.read_manifest(self.key, stage)
+            if manifest is None:
+                out[stage], upstream_ok = "missing", False
+                continue
+            fresh = upstream_ok and manifest.fingerprint == self.fingerprint(stage)
+            out[stage] = "fresh" if fresh else "stale"
+            upstream_ok = upstream_ok and fresh
+        return out
+
     def _report(self, stage: str, status: str) -> None:
         if self.progress is not None:
             self.progress(ProgressEvent(f"{self.key}:{stage}:{status}", 1, 1, 0.0, {}))
@@ -160,20 +217,27 @@ class PhotoRun:
 
     # -- the stages ---------------------------------------------------------------------------
 
-    def reference(self) -> Manifest:
+    def spec(self, stage: str) -> StageSpec:
+        specs = {"reference": self._reference, "nerf_fit": self._nerf, "dmtet": self._dmtet,
+                 "texture_refine": self._texture, "uv_bake": self._bake, "qa": self._qa}
+        if stage not in self.stages:
+            raise ValueError(f"{self.key}: stage {stage!r} is not part of this run (stages: {self.stages})")
+        return specs[stage]()
+
+    def _reference(self) -> StageSpec:
         cfg = self.cfg
 
         def body(out: Path, _ckpt: Path | None) -> StageResult:
             info = prepare_reference(self.photo, out, cfg.prepare)
             plan = plan_reference(out, cfg.plan)
+            save_mask_overlay(out, out)
             return StageResult({"method": info.method, "area_fraction": round(info.area_fraction, 4),
                                 "warnings": len(info.warnings), "plan": plan.summary()},
                                "none (segmentation)", "cpu", list(info.warnings))
 
-        config = {"prepare": cfg.prepare, "plan": cfg.plan}
-        return self.run_stage("reference", config, {"photo": file_sha256(self.photo)}, body)
+        return StageSpec({"prepare": cfg.prepare, "plan": cfg.plan}, {"photo": self.hash_photo(self.photo)}, body)
 
-    def nerf(self) -> Manifest:
+    def _nerf(self) -> StageSpec:
         cfg = self.cfg
         config = {"nerf": cfg.nerf, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.nerf.guidance.roles),
                   "seed": cfg.seed}
@@ -182,19 +246,19 @@ class PhotoRun:
             return nerf_fit.fit_nerf(self.dir("reference"), out, cfg.nerf, cfg.priors, self.key, cfg.device,
                                      cfg.seed, ckpt, self._progress(), self._suite("nerf_fit"))
 
-        return self.run_stage("nerf_fit", config, {"reference": _output_digest(self.done["reference"])}, body)
+        return StageSpec(config, {"reference": self.digest("reference")}, body)
 
-    def dmtet(self) -> Manifest:
+    def _dmtet(self) -> StageSpec:
         cfg = self.cfg
+        inputs = {"reference": self.digest("reference")}
         plan = self.plan
         grid = plan.dmtet_grid.value if plan is not None else None
         config = {"dmtet": cfg.dmtet, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.dmtet.guidance.roles),
                   "seed": cfg.seed, "planned_grid": grid}
-        inputs = {"reference": _output_digest(self.done["reference"])}
         if self.init_mesh is not None:
             inputs["init_mesh"] = file_sha256(self.init_mesh)
         else:
-            inputs["nerf_fit"] = _output_digest(self.done["nerf_fit"])
+            inputs["nerf_fit"] = self.digest("nerf_fit")
 
         def body(out: Path, ckpt: Path | None) -> StageResult:
             nerf_dir = None if self.init_mesh is not None else self.dir("nerf_fit")
@@ -202,61 +266,92 @@ class PhotoRun:
                                          self.init_mesh, grid, cfg.device, cfg.seed, ckpt, self._progress(),
                                          self._suite("dmtet"))
 
-        return self.run_stage("dmtet", config, inputs, body)
+        return StageSpec(config, inputs, body)
 
-    def texture(self) -> Manifest:
+    def _texture(self) -> StageSpec:
         cfg = self.cfg
+        inputs = {"reference": self.digest("reference"), "dmtet": self.digest("dmtet")}
         plan = self.plan
         refine = plan is None or plan.highpass_refinement.action != "skip"
         reason = "" if plan is None else plan.highpass_refinement.reason
         config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
                   "prior_kind": self.prior_kind(cfg.texture.guidance.roles)}
-        inputs = {"reference": _output_digest(self.done["reference"]), "dmtet": _output_digest(self.done["dmtet"])}
 
         def body(out: Path, ckpt: Path | None) -> StageResult:
             return texture_refine.refine_texture(self.dir("reference"), self.dir("dmtet"), out, cfg.texture,
                                                  cfg.priors, self.key, refine, reason, cfg.device, cfg.seed, ckpt,
                                                  self._progress(), self._suite("texture_refine"))
 
-        return self.run_stage("texture_refine", config, inputs, body)
+        return StageSpec(config, inputs, body)
 
-    def bake(self) -> Manifest:
+    def _bake(self) -> StageSpec:
         cfg = self.cfg
+        inputs = {k: self.digest(k) for k in ("reference", "dmtet", "texture_refine")}
         plan = self.plan
         faces = plan.export.value if plan is not None else None
-        inputs = {k: _output_digest(self.done[k]) for k in ("reference", "dmtet", "texture_refine")}
 
         def body(out: Path, _ckpt: Path | None) -> StageResult:
             return uv_bake.bake_asset(self.dir("reference"), self.dir("dmtet"), self.dir("texture_refine"), out,
                                       cfg.bake, faces, cfg.device)
 
-        return self.run_stage("uv_bake", {"bake": cfg.bake, "planned_faces": faces}, inputs, body)
+        return StageSpec({"bake": cfg.bake, "planned_faces": faces}, inputs, body)
+
+    def _qa(self) -> StageSpec:
+        cfg = self.cfg
+        producers = [s for s in self.stages if s != "qa"]
+        inputs = {s: self.digest(s) for s in producers}
+
+        def body(out: Path, _ckpt: Path | None) -> StageResult:
+            upstream = {s: self.upstream(s).metrics for s in producers}
+            prior = self.upstream("texture_refine").prior
+            return qa.run_qa(self.dir("reference"), self.dir("uv_bake") / uv_bake.ASSET_GLB, out, cfg.qa, upstream,
+                             prior, cfg.device)
+
+        return StageSpec({"qa": cfg.qa}, inputs, body)
 
 
 def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str,
               init_mesh: Path | None = None, progress: ProgressFn | None = None,
-              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "uv_bake") -> PhotoOutcome:
+              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "qa") -> PhotoOutcome:
     """Every stage for one photo, up to and including ``until``; never raises for a failing photo
     (the outcome says why)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
     run = PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites)
     store.cleanup_staging(key)
-    named = {"reference": run.reference, "nerf_fit": run.nerf, "dmtet": run.dmtet, "texture_refine": run.texture,
-             "uv_bake": run.bake}
-    wanted = STAGES[:STAGES.index(until) + 1]
-    steps = [named[s] for s in wanted if not (s == "nerf_fit" and init_mesh is not None)]
-    for step in steps:
+    for stage in [s for s in run.stages if STAGES.index(s) <= STAGES.index(until)]:
         try:
-            step()
+            run.run(stage)
         except Exception as exc:
-            stage = step.__name__
             log.error("%s: stage %s failed: %s", key, stage, exc)
             log.debug("%s", traceback.format_exc())
             run.outcome.error = f"{stage}: {type(exc).__name__}: {exc}"
             run.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, str(exc)))
             break
     return run.outcome
+
+
+def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str, stage: str,
+              init_mesh: Path | None = None, progress: ProgressFn | None = None,
+              suites: dict[str, Callable[[], PriorSuite]] | None = None) -> StageOutcome:
+    """One stage for one photo, reading its inputs from the store (what a Dagster asset calls).
+
+    Cached when its fingerprint matches, resumed from its newest checkpoint when one exists.
+    Raises on failure (``MissingUpstreamError`` when an input stage has no finished output), so
+    an orchestrator can retry; finished outputs and checkpoints stay in place."""
+    run = PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites)
+    run.run(stage)
+    return run.outcome.stages[-1]
+
+
+def photo_status(photo: Path, store: Store, cfg: PipelineConfig, key: str, init_mesh: Path | None = None,
+                 hashes: PhotoHashes | None = None) -> dict[str, str]:
+    """Per stage: ``fresh`` / ``stale`` / ``missing`` (see ``PhotoRun.status``); ``hashes`` avoids
+    re-reading unchanged photos when checking a whole catalog."""
+    run = PhotoRun(Path(photo), key, store, cfg, "", init_mesh, None, None)
+    if hashes is not None:
+        run.hash_photo = hashes.sha256
+    return run.status()
 
 
 def uses_weight_free(outcome: PhotoOutcome) -> bool:

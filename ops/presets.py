@@ -25,6 +25,7 @@ from ops.nerf_fit import NerfFitConfig, small_field
 from ops.optimise import LoopConfig
 from ops.plan import PlanConfig
 from ops.prior_suite import PriorsConfig
+from ops.qa import QAConfig
 from ops.reference import PrepareConfig
 from ops.texture_refine import TextureRefineConfig
 from ops.uv_bake import UVBakeConfig
@@ -41,6 +42,7 @@ class PipelineConfig:
     dmtet: DMTetFitConfig = field(default_factory=DMTetFitConfig)
     texture: TextureRefineConfig = field(default_factory=TextureRefineConfig)
     bake: UVBakeConfig = field(default_factory=UVBakeConfig)
+    qa: QAConfig = field(default_factory=QAConfig)
 
 
 def _nerf_guidance(steps: int) -> GuidanceSettings:
@@ -79,6 +81,7 @@ def draft() -> PipelineConfig:
                                     preview_size=128),
         bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
                           eval_resolution=128),
+        qa=QAConfig(eval_resolution=128),
     )
 
 

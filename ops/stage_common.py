@@ -137,6 +137,17 @@ def save_stage_preview(out_dir: Path, reference_dir: Path, render: Callable[[Cam
     return save_strip(Path(out_dir) / PREVIEW_FILE, [photo.rgb[0], ref[0], *views], size)
 
 
+def save_mask_overlay(out_dir: Path, reference_dir: Path, size: int = 160) -> Path:
+    """``preview.png`` of the reference stage: the recentred photo | the mask over it (background
+    tinted red), so a bad cut-out shows at a glance."""
+    rgba = read_rgba(reference_dir, size)
+    alpha = rgba[3:4]
+    on_white = rgba[:3] * alpha + (1.0 - alpha)
+    red = torch.tensor([0.9, 0.1, 0.1]).view(3, 1, 1)
+    overlay = on_white * alpha + (0.5 * on_white + 0.5 * red) * (1.0 - alpha)
+    return save_strip(Path(out_dir) / PREVIEW_FILE, [on_white, overlay], size)
+
+
 @dataclass
 class StageResult:
     """What a stage reports back: metrics for the manifest, notes for people, the prior used."""

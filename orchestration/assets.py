@@ -1,0 +1,202 @@
+"""The photo source asset and the six per-photo stage assets: thin wrappers over ``ops.pipeline``.
+
+Each stage asset runs ``ops.pipeline.run_stage`` for every photo partition of its step, then
+reports the store's manifest as metadata and the stage's QA checks (``ops.qa.CHECKS``) as asset
+check results. A step covering several photos (a backfill batch) keeps going past a failing
+photo, records what finished, then fails naming the photos that did not, so a retry redoes only
+those (finished ones are cached; interrupted ones resume from their checkpoints).
+"""
+
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import dagster as dg
+from dagster import AssetExecutionContext
+
+from assets_store.keys import UnsafeKeyError
+from assets_store.photo_hashes import PhotoHashes
+from morpheus_core.proxy_shape import EmptySilhouetteError
+from ops.config_tree import ConfigError
+from ops.errors import PreparationError
+from ops.optimise import ProgressEvent
+from ops.pipeline import CODE_VERSIONS, MissingUpstreamError, StageOutcome, output_digest
+from ops.qa import CHECKS, ERROR, QACheck, read_report, stage_checks
+from orchestration.metadata import check_metadata, stage_metadata
+from orchestration.partitions import PHOTOS, photos
+from orchestration.resources import MorpheusResource, UnknownPhotoError
+from orchestration.settings import OrchestrationSettings
+
+GROUP = "morpheus3d"
+GPU_POOL = "gpu"
+# GPU requests for the Kubernetes executor (ignored by the local executors).
+GPU_TAGS = {"dagster-k8s/config": {"container_config": {"resources": {"limits": {"nvidia.com/gpu": "1"}}}}}
+# Bad input or configuration: retrying cannot help, so these fail at once with their message.
+PERMANENT = (PreparationError, ConfigError, MissingUpstreamError, UnknownPhotoError, UnsafeKeyError,
+             EmptySilhouetteError)
+
+
+@dataclass(frozen=True)
+class StageAsset:
+    name: str
+    stage: str
+    deps: tuple[str, ...]
+    gpu: bool
+    description: str
+
+
+STAGE_ASSETS = (
+    StageAsset("reference", "reference", ("photo_files",), False,
+               "Segmentation, mask and recentred reference views of the photo, plus the stage plan "
+               "(DMTet grid, whether high-pass refinement pays, export face budget)."),
+    StageAsset("nerf_field", "nerf_fit", ("reference",), True,
+               "Stage 1a: hash-grid NeRF fitted to the reference under the 3D prior (SDS, t annealed 0.98 → 0.5)."),
+    StageAsset("dmtet_mesh", "dmtet", ("reference", "nerf_field"), True,
+               "Stage 1b: DMTet surface initialised from the NeRF density, mesh and texture field refined."),
+    StageAsset("refined_texture", "texture_refine", ("reference", "dmtet_mesh"), True,
+               "Stage 2: texture refined with the 3D prior (full band) and the 2D prior's VSD on the high "
+               "frequencies; a recorded pass-through when the plan finds the texture flat."),
+    StageAsset("uv_asset", "uv_bake", ("reference", "dmtet_mesh", "refined_texture"), False,
+               "UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews."),
+    StageAsset("qa_report", "qa", ("uv_asset",), False,
+               "QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, and "
+               "every stage's checks; verdict pass / warn / fail with reasons (qa.json)."),
+)
+ASSET_OF_STAGE = {a.stage: a.name for a in STAGE_ASSETS}
+
+
+def _severity(check: QACheck) -> dg.AssetCheckSeverity:
+    return dg.AssetCheckSeverity.ERROR if check.severity == ERROR else dg.AssetCheckSeverity.WARN
+
+
+def _checks(outcome: StageOutcome, morpheus: MorpheusResource, key: str) -> list[QACheck]:
+    if outcome.stage == "qa":
+        report = read_report(morpheus.store().stage_dir(key, "qa"))
+        return [QACheck(**c) for c in report.checks["qa"]]
+    assert outcome.manifest is not None
+    return stage_checks(outcome.stage, outcome.manifest.metrics, morpheus.pipeline_config().qa)
+
+
+def _logging_progress(context: AssetExecutionContext, every_s: float = 15.0) -> Callable[[ProgressEvent], None]:
+    """Step progress in the run log, at most every ``every_s`` seconds (and at the end)."""
+    last = [0.0]
+
+    def report(event: ProgressEvent) -> None:
+        now = time.monotonic()
+        if event.step >= event.total or now - last[0] >= every_s:
+            last[0] = now
+            shown = ", ".join(f"{k} {v:.4g}" for k, v in event.metrics.items() if isinstance(v, (int, float)))
+            context.log.info(f"{event.stage}: step {event.step}/{event.total} ({event.elapsed_s:.0f} s) {shown}")
+
+    return report
+
+
+def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, key: str) -> StageOutcome:
+    try:
+        return morpheus.run_stage(key, stage, _logging_progress(context))
+    except PERMANENT as exc:
+        raise dg.Failure(description=f"{key}: {type(exc).__name__}: {exc}", allow_retries=False) from exc
+
+
+def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.AssetsDefinition:
+    check_specs = [dg.AssetCheckSpec(c.name, asset=spec.name, description=c.description, partitions_def=photos)
+                   for c in CHECKS[spec.stage]]
+
+    @dg.asset(
+        name=spec.name, description=spec.description, group_name=GROUP, partitions_def=photos,
+        deps=list(spec.deps), code_version=CODE_VERSIONS[spec.stage], check_specs=check_specs,
+        pool=GPU_POOL if spec.gpu else None, op_tags=GPU_TAGS if spec.gpu else None,
+        kinds={"pytorch"} if spec.gpu else {"python"},
+        retry_policy=dg.RetryPolicy(max_retries=settings.max_retries, delay=settings.retry_delay_s,
+                                    backoff=dg.Backoff.EXPONENTIAL, jitter=dg.Jitter.PLUS_MINUS),
+        backfill_policy=dg.BackfillPolicy.multi_run(settings.backfill_batch),
+    )
+    def stage_asset(context: AssetExecutionContext, morpheus: MorpheusResource) -> Iterator[Any]:
+        keys = list(context.partition_keys)
+        if len(keys) == 1:
+            outcome = _run_one(context, morpheus, spec.stage, keys[0])
+            checks = _checks(outcome, morpheus, keys[0])
+            assert outcome.manifest is not None
+            yield dg.MaterializeResult(
+                metadata=stage_metadata(outcome, morpheus.store().stage_dir(keys[0], spec.stage)),
+                data_version=dg.DataVersion(output_digest(outcome.manifest)),
+                check_results=[dg.AssetCheckResult(check_name=c.name, passed=c.passed, severity=_severity(c),
+                                                   description=c.message, metadata=check_metadata(c))
+                               for c in checks])
+            return
+        yield from _batch(context, morpheus, spec, keys)
+
+    return stage_asset
+
+
+def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: StageAsset,
+           keys: list[str]) -> Iterator[Any]:
+    """A step over several photos: one photo's failure does not stop the others."""
+    done: dict[str, tuple[StageOutcome, list[QACheck]]] = {}
+    failed: dict[str, str] = {}
+    for i, key in enumerate(keys, 1):
+        context.log.info(f"[{i}/{len(keys)}] {key}: {spec.stage}")
+        try:
+            outcome = _run_one(context, morpheus, spec.stage, key)
+            done[key] = (outcome, _checks(outcome, morpheus, key))
+        except Exception as exc:  # recorded per photo; the step fails below
+            failed[key] = f"{type(exc).__name__}: {exc}"
+            context.log.error(f"{key}: {spec.stage} failed: {failed[key]}")
+    asset_key = dg.AssetKey(spec.name)
+    for key, (_, checks) in done.items():
+        for c in checks:
+            yield dg.AssetCheckEvaluation(
+                asset_key=asset_key, check_name=c.name, passed=c.passed, severity=_severity(c),
+                description=c.message, metadata=check_metadata(c), partition=key)
+    if failed:
+        # The step fails, so Dagster records no materialisation for its range: record the finished photos.
+        for key, (outcome, _) in done.items():
+            yield dg.AssetMaterialization(
+                asset_key=asset_key, partition=key,
+                metadata=stage_metadata(outcome, morpheus.store().stage_dir(key, spec.stage)))
+        raise dg.Failure(description=f"{spec.name}: {len(failed)} of {len(keys)} photos failed: "
+                         + "; ".join(f"{k}: {v}" for k, v in failed.items()),
+                         metadata={"failed": dg.MetadataValue.json(failed)})
+    table = ["| photo | status | wall s | ref PSNR | verdict / checks |", "|---|---|---|---|---|"]
+    for key, (outcome, checks) in done.items():
+        m = outcome.manifest
+        assert m is not None
+        psnr = m.metrics.get("ref_psnr")
+        bad = [c.name for c in checks if not c.passed]
+        table.append(f"| {key} | {outcome.status} | {m.wall_time_s:.1f} | "
+                     f"{'' if psnr is None else f'{psnr:.1f}'} | {', '.join(bad) or 'all passed'} |")
+    summaries = []
+    for c in CHECKS[spec.stage]:
+        failing = [k for k, (_, cs) in done.items() if any(x.name == c.name and not x.passed for x in cs)]
+        summaries.append(dg.AssetCheckResult(
+            check_name=c.name, passed=not failing,
+            severity=dg.AssetCheckSeverity.ERROR if c.severity == ERROR else dg.AssetCheckSeverity.WARN,
+            description=f"batch of {len(keys)}: " + (f"failed for {', '.join(failing)}" if failing else "all passed")))
+    yield dg.MaterializeResult(metadata={"photos": len(keys), "batch": dg.MetadataValue.md("\n".join(table))},
+                               check_results=summaries)
+
+
+def build_photo_source(settings: OrchestrationSettings) -> dg.SourceAsset:
+    @dg.observable_source_asset(
+        name="photo_files", group_name=GROUP, partitions_def=photos, required_resource_keys={"morpheus"},
+        description="The product photos in the watched folder; data version = content hash (sha256), so a "
+                    "changed photo makes exactly its own partition's stages stale.")
+    def photo_files(context: AssetExecutionContext) -> dg.DataVersionsByPartition:
+        morpheus: MorpheusResource = context.resources.morpheus
+        names = morpheus.photos()
+        hashes = PhotoHashes(morpheus.store_root)
+        versions = {k: hashes.sha256(morpheus.photo_path(k, names)) for k in
+                    context.instance.get_dynamic_partitions(PHOTOS) if k in names}
+        hashes.save()
+        return dg.DataVersionsByPartition(versions)
+
+    return photo_files
+
+
+def build_assets(settings: OrchestrationSettings) -> list[Any]:
+    return [build_photo_source(settings), *(_make_stage_asset(s, settings) for s in STAGE_ASSETS)]
+
+
+STAGE_ASSET_NAMES = tuple(a.name for a in STAGE_ASSETS)

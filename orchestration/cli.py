@@ -1,0 +1,128 @@
+"""``morpheus3d-dagster``: register photos as partitions and materialise them through Dagster.
+
+    morpheus3d-dagster add-photos [NAME ...]        register photos of $MORPHEUS_PHOTO_DIR, print keys
+    morpheus3d-dagster materialize [NAME ...]       run all six assets per photo, in this process
+    morpheus3d-dagster status                       fresh / stale / missing per photo
+
+Runs are recorded in the instance at ``$DAGSTER_HOME`` (``make dagster`` shows them in the UI).
+Backfills through the daemon: ``dagster job backfill -w workspace.yaml -j morpheus_photos
+--partitions KEY,KEY --noprompt`` (see the README).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import dagster as dg
+
+from ops.qa import read_report
+from ops.uv_bake import ASSET_GLB
+from orchestration.definitions import JOB, build_definitions
+from orchestration.partitions import PHOTOS
+from orchestration.resources import MorpheusResource
+from orchestration.schedules import needs_run
+from orchestration.settings import OrchestrationSettings
+
+
+def _select(resource: MorpheusResource, names: Sequence[str]) -> list[str]:
+    """Photo keys for file names (or keys) in the watched folder; all photos when none are named."""
+    photos = resource.photos()
+    if not names:
+        return sorted(photos)
+    by_name = {v: k for k, v in photos.items()}
+    keys, unknown = [], []
+    for name in names:
+        base = Path(name).name
+        key = name if name in photos else by_name.get(base)
+        (keys if key else unknown).append(key or name)
+    if unknown:
+        raise SystemExit(f"not in {resource.photo_dir}: {', '.join(unknown)} (photos there: "
+                         f"{', '.join(sorted(photos.values())[:10])}{' …' if len(photos) > 10 else ''})")
+    return keys
+
+
+def _instance() -> dg.DagsterInstance:
+    if not os.environ.get("DAGSTER_HOME"):
+        raise SystemExit("DAGSTER_HOME is not set: point it at a folder holding dagster.yaml "
+                         "(the project's is ./dagster_home; `make dagster` sets it)")
+    Path(os.environ["DAGSTER_HOME"]).mkdir(parents=True, exist_ok=True)
+    return dg.DagsterInstance.get()
+
+
+def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
+    defs = build_definitions(settings=settings)
+    resource: MorpheusResource = defs.resources["morpheus"]
+    keys = _select(resource, names)
+    instance = _instance()
+    instance.add_dynamic_partitions(PHOTOS, keys)
+    job = defs.resolve_job_def(JOB)
+    rows, failed = [], 0
+    for i, key in enumerate(keys, 1):
+        print(f"[{i}/{len(keys)}] {key}: materialising six assets …", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        result = job.execute_in_process(partition_key=key, instance=instance, raise_on_error=False,
+                                        tags={"morpheus/trigger": "cli"})
+        wall = time.perf_counter() - start
+        store = resource.store()
+        glb = store.stage_dir(key, "uv_bake") / ASSET_GLB
+        if result.success:
+            report = read_report(store.stage_dir(key, "qa"))
+            psnr = report.metrics.get("ref_psnr")
+            rows.append((key, "ok", f"{wall:.0f}", report.verdict, f"{psnr:.1f}" if psnr else "-", str(glb),
+                         "; ".join(report.reasons) or "-"))
+        else:
+            failed += 1
+            step = next((e for e in result.all_events if e.event_type_value == "STEP_FAILURE"), None)
+            why = step.event_specific_data.error.message.strip().splitlines()[-1] if step else "run failed"
+            rows.append((key, "FAILED", f"{wall:.0f}", "-", "-", "-", why[:200]))
+    header = ("photo", "run", "time s", "QA", "ref PSNR dB", "GLB", "QA reasons / failure")
+    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header) - 1)]
+    for row in [header, *rows]:
+        print("  ".join(str(c).ljust(w) for c, w in zip(row, widths, strict=False)) + "  " + str(row[-1]))
+    print(f"\nQA reports: {settings.store_root}/<photo>/qa/qa.json · runs and previews: `make dagster`, "
+          "then http://127.0.0.1:3000/runs")
+    return 1 if failed else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="morpheus3d-dagster", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--photos", type=Path, help="photo folder (default $MORPHEUS_PHOTO_DIR or examples/photos)")
+    parser.add_argument("--store", type=Path, help="asset store root (default $MORPHEUS_STORE)")
+    parser.add_argument("--preset", choices=["draft", "standard", "paper"], help="default $MORPHEUS_PRESET or draft")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, text in (("add-photos", "register photos as partitions and print their keys"),
+                       ("materialize", "run all six assets for the photos, one run per photo, in this process"),
+                       ("status", "fresh / stale / missing stages per registered photo")):
+        p = sub.add_parser(name, help=text)
+        if name != "status":
+            p.add_argument("names", nargs="*", help="photo file names in the folder (default: all)")
+    args = parser.parse_args(argv)
+    env = dict(os.environ)
+    for flag, var in ((args.photos, "MORPHEUS_PHOTO_DIR"), (args.store, "MORPHEUS_STORE"),
+                      (args.preset, "MORPHEUS_PRESET")):
+        if flag is not None:
+            env[var] = str(flag)
+    settings = OrchestrationSettings.from_env(env)
+    logging.basicConfig(level=logging.WARNING)
+    resource = build_definitions(settings=settings).resources["morpheus"]
+    if args.command == "add-photos":
+        keys = _select(resource, args.names)
+        _instance().add_dynamic_partitions(PHOTOS, keys)
+        print(",".join(keys))
+        return 0
+    if args.command == "status":
+        keys = _instance().get_dynamic_partitions(PHOTOS)
+        for key, status in sorted(resource.status(keys).items()):
+            print(f"{key}: {needs_run(status) or 'up to date'}  ({', '.join(f'{s} {v}' for s, v in status.items())})")
+        return 0
+    return materialize(settings, args.names)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

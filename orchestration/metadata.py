@@ -1,0 +1,78 @@
+"""What a materialisation shows in the UI: timing, device, cache hit, plan decisions, key metrics,
+artifact paths and an inline preview image (base64 PNG in Markdown, so it renders in place)."""
+
+from __future__ import annotations
+
+import base64
+import math
+from pathlib import Path
+from typing import Any
+
+from dagster import MetadataValue
+
+from assets_store.manifest import Manifest
+from ops.pipeline import StageOutcome
+from ops.qa import QACheck
+
+# The image people look at per stage (the reference's mask overlay, renders, the GLB turntable).
+PREVIEWS = {"reference": "preview.png", "nerf_fit": "preview.png", "dmtet": "preview.png",
+            "texture_refine": "preview.png", "uv_bake": "turntable.png", "qa": "turntable.png"}
+MAX_PREVIEW_BYTES = 400_000  # the UI stores metadata in the event log: keep it small
+
+
+def preview_markdown(path: Path, caption: str) -> MetadataValue | None:
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    if len(data) > MAX_PREVIEW_BYTES:
+        return MetadataValue.md(f"{caption}: preview too large to inline, see `{path}`")
+    encoded = base64.b64encode(data).decode("ascii")
+    return MetadataValue.md(f"**{caption}**\n\n![{caption}](data:image/png;base64,{encoded})")
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float):
+        return round(value, 4) if math.isfinite(value) else str(value)
+    return value
+
+
+def stage_metadata(outcome: StageOutcome, stage_dir: Path) -> dict[str, Any]:
+    m: Manifest | None = outcome.manifest
+    if m is None:  # pragma: no cover - a failed stage raises before metadata is built
+        return {"status": outcome.status}
+    meta: dict[str, Any] = {
+        "status": outcome.status,
+        "cache_hit": outcome.status == "cached",
+        "wall_time_s": MetadataValue.float(float(m.wall_time_s)),
+        "device": m.device,
+        "preset": m.preset,
+        "prior": m.prior,
+        "code_version": m.fingerprint.code_version,
+        "config_hash": m.fingerprint.config_hash[:12],
+        "created_at": m.created_at,
+        "stage_dir": MetadataValue.path(str(stage_dir)),
+    }
+    if m.plan:
+        meta["plan"] = MetadataValue.json({k: _plain(v) for k, v in m.plan.items()})
+    metrics = {k: _plain(v) for k, v in m.metrics.items() if isinstance(v, (int, float, str, bool)) or v is None}
+    meta["metrics"] = MetadataValue.json(metrics)
+    for name in ("ref_psnr", "faces", "uv_coverage", "mask_iou", "steps_run", "resumed_from_step", "verdict"):
+        value = m.metrics.get(name)
+        if value is not None:
+            meta[name] = _plain(value)
+    if m.metrics.get("skipped"):
+        meta["pass_through"] = True
+    if m.notes:
+        meta["notes"] = MetadataValue.md("\n".join(f"- {n}" for n in m.notes))
+    if "asset.glb" in m.outputs:
+        meta["glb"] = MetadataValue.path(str(stage_dir / "asset.glb"))
+    preview = preview_markdown(stage_dir / PREVIEWS[m.stage], f"{m.photo_key} · {m.stage}")
+    if preview is not None:
+        meta["preview"] = preview
+    return meta
+
+
+def check_metadata(check: QACheck) -> dict[str, Any]:
+    return {"value": _plain(check.value) if check.value is not None else "not measured",
+            "threshold": _plain(check.threshold), "severity": check.severity}

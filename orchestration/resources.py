@@ -1,0 +1,59 @@
+"""The resource every asset, sensor and schedule reads: where photos and the store are, and the
+pipeline configuration (a preset plus ``key=value`` overrides, the same as ``morpheus3d run``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dagster import ConfigurableResource
+from pydantic import Field
+
+from assets_store.photo_hashes import PhotoHashes
+from assets_store.store import Store
+from ops import photo_folder
+from ops.optimise import ProgressFn
+from ops.pipeline import StageOutcome, photo_status, run_stage
+from ops.presets import PipelineConfig, preset
+
+
+class UnknownPhotoError(LookupError):
+    """A partition whose photo is no longer in the watched folder."""
+
+
+class MorpheusResource(ConfigurableResource):
+    photo_dir: str
+    store_root: str
+    preset: str = "draft"
+    overrides: list[str] = Field(default_factory=list)
+    settle_seconds: float = 30.0
+
+    def pipeline_config(self) -> PipelineConfig:
+        return preset(self.preset, self.overrides)
+
+    def store(self) -> Store:
+        return Store(self.store_root)
+
+    def photos(self) -> dict[str, str]:
+        """Photo key → file name in the watched folder."""
+        return photo_folder.scan(Path(self.photo_dir))
+
+    def photo_path(self, key: str, photos: dict[str, str] | None = None) -> Path:
+        names = self.photos() if photos is None else photos
+        if key not in names:
+            raise UnknownPhotoError(f"partition {key!r} has no photo in {self.photo_dir} (renamed or removed?); "
+                                    "put the photo back or delete the partition")
+        return Path(self.photo_dir) / names[key]
+
+    def run_stage(self, key: str, stage: str, progress: ProgressFn | None = None) -> StageOutcome:
+        return run_stage(self.photo_path(key), self.store(), self.pipeline_config(), self.preset, key, stage,
+                         progress=progress)
+
+    def status(self, keys: list[str]) -> dict[str, dict[str, str]]:
+        """Stage status (fresh / stale / missing) per key whose photo is present; photos are hashed
+        only when they changed since the last look."""
+        names, store, cfg = self.photos(), self.store(), self.pipeline_config()
+        hashes = PhotoHashes(self.store_root)
+        out = {k: photo_status(Path(self.photo_dir) / names[k], store, cfg, k, hashes=hashes)
+               for k in keys if k in names}
+        hashes.save()
+        return out

@@ -1,0 +1,59 @@
+"""A temporary Dagster deployment over a folder of photos, with the tiny pipeline configuration."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterable
+from pathlib import Path
+
+import dagster as dg
+
+from orchestration.definitions import JOB, build_definitions
+from orchestration.partitions import PHOTOS
+from orchestration.settings import OrchestrationSettings
+from tests.pipeline_helpers import PHOTOS as EXAMPLES
+from tests.pipeline_helpers import cli_overrides, tiny_config
+
+TINY = tuple(cli_overrides(tiny_config())[1::2])  # the "key=value" halves of the --set pairs
+
+
+def photo_folder(root: Path, names: Iterable[str]) -> Path:
+    folder = root / "photos"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        shutil.copy(EXAMPLES / name, folder / name)
+    return folder
+
+
+def settings(root: Path, **changes: object) -> OrchestrationSettings:
+    base = {"photo_dir": str(root / "photos"), "store_root": str(root / "store"), "overrides": TINY,
+            "settle_seconds": 0.0, "max_retries": 0, "retry_delay_s": 0.0}
+    return OrchestrationSettings(**{**base, **changes})
+
+
+def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, keys: list[str]) -> dg.ExecuteInProcessResult:
+    """One run over ``keys``: a single partition, or a batch (what a multi-run backfill launches)."""
+    instance.add_dynamic_partitions(PHOTOS, keys)
+    job = defs.resolve_job_def(JOB)
+    if len(keys) == 1:
+        return job.execute_in_process(partition_key=keys[0], instance=instance, raise_on_error=False)
+    tags = {"dagster/asset_partition_range_start": keys[0], "dagster/asset_partition_range_end": keys[-1]}
+    return job.execute_in_process(tags=tags, instance=instance, raise_on_error=False)
+
+
+def materializations(result: dg.ExecuteInProcessResult) -> dict[tuple[str, str | None], dict]:
+    """(asset, partition) → metadata of the run's materialisations (the last one wins)."""
+    out = {}
+    for e in result.all_events:
+        if e.event_type_value == "ASSET_MATERIALIZATION":
+            m = e.event_specific_data.materialization
+            out[(m.asset_key.to_user_string(), m.partition)] = m.metadata
+    return out
+
+
+def check_evaluations(result: dg.ExecuteInProcessResult) -> list:
+    return [e.event_specific_data for e in result.all_events if e.event_type_value == "ASSET_CHECK_EVALUATION"]
+
+
+def build(root: Path, **changes: object) -> dg.Definitions:
+    return build_definitions(settings=settings(root, **changes))

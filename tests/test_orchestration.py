@@ -1,0 +1,259 @@
+"""The Dagster layer end to end on CPU: six assets materialised for a bundled photo in a temporary
+instance, checks and metadata, caching, the nightly schedule (missing / stale only), the photo
+observation (a changed photo changes only its own data version), a batch with a failing photo
+resumed from its checkpoint, and the code location validating through the `dagster` command."""
+
+from __future__ import annotations
+
+import base64
+import io
+import os
+import re
+import subprocess
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import dagster as dg
+import pytest
+import trimesh
+from PIL import Image
+
+from assets_store.checkpoints import Checkpoints
+from assets_store.store import Store
+from ops.qa import CHECKS, read_report
+from orchestration.assets import ASSET_OF_STAGE, GPU_POOL, STAGE_ASSET_NAMES
+from orchestration.definitions import JOB
+from orchestration.partitions import PHOTOS
+from tests.orchestration_helpers import (
+    build,
+    check_evaluations,
+    materializations,
+    photo_folder,
+    run_job,
+)
+from tests.pipeline_helpers import ROOT, manifest
+
+KEY = "mug.jpg"
+
+
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("dagster")
+    photo_folder(root, [KEY, "bottle.jpg"])
+    home = root / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance:
+        defs = build(root)
+        first = run_job(defs, instance, [KEY])
+        yield root, defs, instance, first
+
+
+def _preview_png(md: dg.MetadataValue) -> Image.Image:
+    match = re.search(r"data:image/png;base64,([A-Za-z0-9+/=]+)\)", md.value)
+    assert match, "no inline base64 PNG in the preview metadata"
+    return Image.open(io.BytesIO(base64.b64decode(match.group(1))))
+
+
+def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None:
+    root, _, _, result = deployment
+    assert result.success
+    mats = materializations(result)
+    assert {a for a, p in mats if p == KEY} == set(STAGE_ASSET_NAMES)
+    for stage, asset in ASSET_OF_STAGE.items():
+        meta = mats[(asset, KEY)]
+        for field in ("wall_time_s", "device", "preset", "cache_hit", "status", "metrics", "stage_dir", "prior"):
+            assert field in meta, f"{asset} lacks {field}"
+        assert meta["cache_hit"].value is False
+        assert meta["preset"].value == "draft" and meta["device"].value == "cpu"
+        preview = _preview_png(meta["preview"])
+        assert preview.width > 16 and preview.height > 16, f"{asset}: empty preview"
+        assert Path(meta["stage_dir"].value) == Store(root / "store").stage_dir(KEY, stage)
+    assert "plan" in mats[("dmtet_mesh", KEY)]
+    glb = Path(mats[("uv_asset", KEY)]["glb"].value)
+    loaded = trimesh.load(glb, force="mesh")
+    assert len(loaded.faces) > 0 and loaded.visual.uv is not None
+
+    evaluations = check_evaluations(result)
+    seen = {(e.asset_key.to_user_string(), e.check_name) for e in evaluations}
+    expected = {(ASSET_OF_STAGE[s], c.name) for s, specs in CHECKS.items() for c in specs}
+    assert seen == expected
+    assert all(e.partition == KEY for e in evaluations)
+    # The checks agree with the QA stage's own report, failures included.
+    report = read_report(Store(root / "store").stage_dir(KEY, "qa"))
+    verdict = next(e for e in evaluations if e.check_name == "verdict")
+    assert verdict.passed == (report.verdict != "fail")
+    assert verdict.description
+
+
+def test_rerun_is_all_cache_hits(deployment) -> None:
+    _, defs, instance, _ = deployment
+    again = run_job(defs, instance, [KEY])
+    assert again.success
+    assert {a: m["cache_hit"].value for (a, p), m in materializations(again).items() if p == KEY} == \
+        dict.fromkeys(STAGE_ASSET_NAMES, True)
+
+
+def _schedule_requests(defs: dg.Definitions, instance: dg.DagsterInstance) -> dict[str, str]:
+    schedule = defs.resolve_schedule_def("nightly_catch_up")
+    context = dg.build_schedule_context(instance=instance, resources={"morpheus": defs.resources["morpheus"]},
+                                        scheduled_execution_time=datetime(2026, 11, 24, 2, tzinfo=timezone.utc))
+    result = schedule(context)
+    if isinstance(result, dg.SkipReason):
+        return {}
+    return {r.partition_key: r.tags["morpheus/reason"] for r in result}
+
+
+def _observed_versions(defs: dg.Definitions, instance: dg.DagsterInstance) -> dict[str, str]:
+    source = next(a for a in defs.assets if isinstance(a, dg.SourceAsset))
+    from dagster._core.definitions.observe import observe  # what the UI's "Observe sources" button runs
+
+    result = observe([source], instance=instance, resources={"morpheus": defs.resources["morpheus"]})
+    return {e.event_specific_data.asset_observation.partition:
+            e.event_specific_data.asset_observation.tags["dagster/data_version"]
+            for e in result.all_events if e.event_type_value == "ASSET_OBSERVATION"}
+
+
+def test_schedule_requests_only_missing_and_stale(deployment) -> None:
+    root, defs, instance, _ = deployment
+    photo = root / "photos" / KEY
+    original, stat = photo.read_bytes(), photo.stat()
+    assert _schedule_requests(defs, instance) == {}, "a fresh catalog must request nothing"
+    instance.add_dynamic_partitions(PHOTOS, ["bottle.jpg"])
+    assert _schedule_requests(defs, instance) == {"bottle.jpg": "missing"}
+
+    before = _observed_versions(defs, instance)
+    try:
+        img = Image.open(photo).convert("RGB")
+        img.putpixel((3, 3), (255 - img.getpixel((3, 3))[0], 0, 0))
+        img.save(photo, quality=95)
+        assert _schedule_requests(defs, instance) == {"bottle.jpg": "missing", KEY: "stale"}
+        after = _observed_versions(defs, instance)
+        assert after[KEY] != before[KEY], "a changed photo must get a new data version"
+        assert after["bottle.jpg"] == before["bottle.jpg"], "an unchanged photo keeps its data version"
+    finally:
+        photo.write_bytes(original)
+        os.utime(photo, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert _schedule_requests(defs, instance) == {"bottle.jpg": "missing"}
+
+
+def test_config_change_makes_photos_stale(deployment) -> None:
+    root, _, instance, _ = deployment
+    changed = build(root, overrides=(*build(root).resources["morpheus"].overrides, "qa.min_mask_iou=0.5"))
+    assert _schedule_requests(changed, instance).get(KEY) == "stale"
+
+
+def test_definitions_shape(deployment) -> None:
+    _, defs, _, _ = deployment
+    graph = defs.resolve_asset_graph()
+    names = {k.to_user_string() for k in graph.get_all_asset_keys()}
+    assert names >= {"photo_files", *STAGE_ASSET_NAMES}
+    assert graph.get(dg.AssetKey("reference")).parent_keys == {dg.AssetKey("photo_files")}
+    assert dg.AssetKey("nerf_field") in graph.get(dg.AssetKey("dmtet_mesh")).parent_keys
+    assert graph.get(dg.AssetKey("qa_report")).parent_keys == {dg.AssetKey("uv_asset")}
+    for asset in defs.assets:
+        if isinstance(asset, dg.AssetsDefinition):
+            key = asset.key.to_user_string()
+            assert asset.partitions_def is not None and asset.partitions_def.name == PHOTOS
+            assert asset.code_versions_by_key[asset.key], f"{key} has no code version"
+            assert asset.op.retry_policy is not None
+            assert asset.backfill_policy is not None and asset.backfill_policy.max_partitions_per_run == 8
+            gpu = key in ("nerf_field", "dmtet_mesh", "refined_texture")
+            assert (asset.op.pool == GPU_POOL) == gpu
+            assert ("dagster-k8s/config" in asset.op.tags) == gpu
+    assert defs.resolve_job_def(JOB) is not None
+
+
+def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A backfill batch of two photos; one crashes half-way through its NeRF stage. The other photo
+    finishes the stage; re-executing from the failure resumes the crashed one at its checkpoint."""
+    import orchestration.assets as assets_module
+
+    photo_folder(tmp_path, ["bottle.jpg", KEY])
+    defs = build(tmp_path)
+    bad, good = "bottle.jpg", KEY
+    fault_at = 5  # checkpoints every 2 steps: the newest one before the fault is at step 4
+    real_progress = assets_module._logging_progress
+
+    def faulty(context):
+        report = real_progress(context)
+
+        def hook(event):
+            if event.stage == f"{bad}:nerf_fit" and event.step >= fault_at:
+                raise RuntimeError("injected fault: the machine went away")
+            report(event)
+
+        return hook
+
+    monkeypatch.setenv("MORPHEUS_TEST_ROOT", str(tmp_path))
+    home = tmp_path / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance:
+        monkeypatch.setattr(assets_module, "_logging_progress", faulty)
+        first = run_job(defs, instance, [bad, good])
+        assert not first.success
+        mats = materializations(first)
+        assert ("reference", bad) in mats and ("reference", good) in mats
+        assert ("nerf_field", good) in mats, "the healthy photo's stage must be recorded"
+        assert ("nerf_field", bad) not in mats
+        failure = next(e for e in first.all_events if e.event_type_value == "STEP_FAILURE")
+        error = failure.event_specific_data.error.to_string()
+        assert "1 of 2 photos failed" in error and "injected fault" in error
+        store = Store(tmp_path / "store")
+        ckpt_dirs = [p for p in store.checkpoint_dir(bad, "nerf_fit").rglob("*") if p.is_dir()]
+        steps = sorted({s for d in ckpt_dirs for s in Checkpoints(d, keep=3).steps()})
+        assert steps and max(steps) == fault_at - 1
+
+        monkeypatch.setattr(assets_module, "_logging_progress", real_progress)
+        options = dg.ReexecutionOptions.from_failure(first.run_id, instance)
+        again = dg.execute_job(dg.reconstructable(_tiny_job), instance=instance, reexecution_options=options,
+                               tags={k: v for k, v in first.dagster_run.tags.items() if "partition_range" in k})
+        assert again.success
+        nerf = manifest(store, bad, "nerf_fit")
+        assert nerf.metrics["resumed_from_step"] == fault_at - 1
+        assert nerf.metrics["steps_run"] == nerf.config["nerf"]["loop"]["steps"] - (fault_at - 1)
+        assert manifest(store, good, "nerf_fit").metrics["resumed_from_step"] is None
+        for key in (bad, good):
+            assert read_report(store.stage_dir(key, "qa")).verdict in ("pass", "warn", "fail")
+        for asset in STAGE_ASSET_NAMES:
+            assert instance.get_materialized_partitions(dg.AssetKey(asset)) >= {bad, good}, asset
+
+
+def _tiny_job() -> dg.JobDefinition:
+    """The job for ``execute_job`` (it must be importable by name): settings from the environment
+    the failing test set up, i.e. the same temporary folder as the first run."""
+    from orchestration.definitions import build_definitions
+    from tests.orchestration_helpers import settings
+
+    return build_definitions(settings=settings(Path(os.environ["MORPHEUS_TEST_ROOT"]))).resolve_job_def(JOB)
+
+
+def test_definitions_validate_with_the_dagster_command(tmp_path: Path) -> None:
+    env = {**os.environ, "DAGSTER_HOME": str(tmp_path), "PYTHONPATH": str(ROOT)}
+    dagster = Path(sys.executable).parent / "dagster"
+    proc = subprocess.run([str(dagster), "definitions", "validate", "-w", "workspace.yaml"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "passed validation" in proc.stdout + proc.stderr
+
+
+def test_backfill_from_the_command_line_is_submitted(tmp_path: Path) -> None:
+    """`dagster job backfill` over registered photos creates one backfill with exactly those keys."""
+    photo_folder(tmp_path, [KEY, "bottle.jpg"])
+    env = {**os.environ, "DAGSTER_HOME": str(tmp_path / "home"), "PYTHONPATH": str(ROOT),
+           "MORPHEUS_PHOTO_DIR": str(tmp_path / "photos"), "MORPHEUS_STORE": str(tmp_path / "store")}
+    (tmp_path / "home").mkdir()
+    bindir = Path(sys.executable).parent
+    added = subprocess.run([str(bindir / "morpheus3d-dagster"), "add-photos"], cwd=ROOT, env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert added.returncode == 0, added.stderr
+    assert added.stdout.strip() == f"bottle.jpg,{KEY}"
+    proc = subprocess.run([str(bindir / "dagster"), "job", "backfill", "-w", "workspace.yaml", "-j", JOB,
+                           "--partitions", added.stdout.strip(), "--noprompt"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with dg.DagsterInstance.from_config(str(tmp_path / "home")) as instance:
+        backfills = instance.get_backfills()
+        assert len(backfills) == 1
+        assert sorted(backfills[0].partition_names) == ["bottle.jpg", KEY]
