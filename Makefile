@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo demo-frequency test lint doctor clean
+.PHONY: install browser demo demo-frequency test lint doctor clean
 
 install: $(STAMP)
 
@@ -30,7 +30,21 @@ demo: $(STAMP)
 demo-frequency: $(STAMP)
 	$(PY) benchmarks/frequency_demo.py --out outputs/frequency_demo
 
-test: $(STAMP)
+# Headless Chromium for tests/test_ui.py (Debian packages), installed when missing and apt-get is there.
+# Never fails the make run: without Chromium that test skips and says why.
+APT := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n) env DEBIAN_FRONTEND=noninteractive apt-get
+browser:
+	@if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
+	  if command -v apt-get >/dev/null 2>&1; then \
+	    echo "Installing chromium and chromium-driver (apt-get) for tests/test_ui.py"; \
+	    { $(APT) update -qq && $(APT) install -y -qq chromium chromium-driver; } >/dev/null 2>&1 \
+	      || echo "Could not install Chromium: tests/test_ui.py will skip"; \
+	  else \
+	    echo "No apt-get: tests/test_ui.py skips unless /usr/bin/chromium and /usr/bin/chromedriver exist"; \
+	  fi; \
+	fi
+
+test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -q
 
