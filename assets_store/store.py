@@ -20,6 +20,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -63,9 +64,12 @@ class Store:
 
     def __init__(self, root: Path | str) -> None:
         self.root = Path(root)
+        self._resolved_root: Path | None = None
 
     def _inside(self, path: Path) -> Path:
-        root = self.root.resolve()
+        if self._resolved_root is None or not self._resolved_root.exists():
+            self._resolved_root = self.root.resolve()  # once: catalog-wide scans call this per stage
+        root = self._resolved_root
         resolved = path.resolve()
         if resolved != root and not resolved.is_relative_to(root):
             raise UnsafeKeyError(f"{path} resolves to {resolved}, outside the store root {root}")
@@ -100,8 +104,12 @@ class Store:
         for name, record in manifest.outputs.items():
             path = folder / name
             try:
-                self._inside(path)
-                if path.is_symlink() or not path.is_file() or path.stat().st_size != record.size:
+                # A flat, plain name cannot leave the (already checked) stage folder, and lstat below
+                # refuses a symlink; only nested names need the costlier full resolution.
+                if "/" in name or "\\" in name or name in ("", ".", ".."):
+                    self._inside(path)
+                st = os.lstat(path)
+                if not stat.S_ISREG(st.st_mode) or st.st_size != record.size:
                     return None
             except (OSError, UnsafeKeyError):
                 return None

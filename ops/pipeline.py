@@ -15,7 +15,7 @@ import logging
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, is_dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -37,7 +37,7 @@ from ops.stage_common import StageResult, save_mask_overlay
 log = logging.getLogger("morpheus3d")
 
 STAGES = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake", "qa")
-REFERENCE_CODE_VERSION = "reference-1"
+REFERENCE_CODE_VERSION = "reference-2"  # 2: writes the mask-overlay preview
 CODE_VERSIONS = {"reference": REFERENCE_CODE_VERSION, "nerf_fit": nerf_fit.CODE_VERSION,
                  "dmtet": dmtet_stage.CODE_VERSION, "texture_refine": texture_refine.CODE_VERSION,
                  "uv_bake": uv_bake.CODE_VERSION, "qa": qa.CODE_VERSION}
@@ -108,6 +108,9 @@ class PhotoRun:
         self._plan: StagePlan | None = None
         self.outcome = PhotoOutcome(photo, key)
         self.hash_photo: Callable[[Path], str] = file_sha256
+        # Config hashes and prior resolution are the same for every photo with the same plan
+        # decisions; a catalog-wide status check shares this between photos.
+        self.memo: dict[Any, Any] = {}
 
     def dir(self, stage: str) -> Path:
         return self.store.stage_dir(self.key, stage)
@@ -139,12 +142,20 @@ class PhotoRun:
         return output_digest(self.upstream(stage))
 
     def prior_kind(self, roles: tuple[str, ...]) -> str:
-        return "injected" if self.suites else self.cfg.priors.resolve(roles)
+        if self.suites:
+            return "injected"
+        key = ("prior_kind", id(self.cfg.priors), roles)
+        if key not in self.memo:
+            self.memo[key] = self.cfg.priors.resolve(roles)
+        return self.memo[key]
 
     def fingerprint(self, stage: str, spec: StageSpec | None = None) -> Fingerprint:
         spec = spec or self.spec(stage)
-        plain = json.loads(json.dumps(to_dict(spec.config), default=str))
-        return Fingerprint(inputs=spec.inputs, config_hash=config_hash(plain), code_version=CODE_VERSIONS[stage])
+        key = ("config_hash", stage,
+               tuple((k, id(v) if is_dataclass(v) else v) for k, v in sorted(spec.config.items())))
+        if key not in self.memo:
+            self.memo[key] = config_hash(json.loads(json.dumps(to_dict(spec.config), default=str)))
+        return Fingerprint(inputs=spec.inputs, config_hash=self.memo[key], code_version=CODE_VERSIONS[stage])
 
     def run(self, stage: str) -> Manifest:
         """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
@@ -196,6 +207,7 @@ class PhotoRun:
             if manifest is None:
                 out[stage], upstream_ok = "missing", False
                 continue
+            self.done[stage] = manifest  # downstream fingerprints read it as their input
             fresh = upstream_ok and manifest.fingerprint == self.fingerprint(stage)
             out[stage] = "fresh" if fresh else "stale"
             upstream_ok = upstream_ok and fresh
@@ -345,12 +357,15 @@ def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
 
 
 def photo_status(photo: Path, store: Store, cfg: PipelineConfig, key: str, init_mesh: Path | None = None,
-                 hashes: PhotoHashes | None = None) -> dict[str, str]:
-    """Per stage: ``fresh`` / ``stale`` / ``missing`` (see ``PhotoRun.status``); ``hashes`` avoids
-    re-reading unchanged photos when checking a whole catalog."""
+                 hashes: PhotoHashes | None = None, memo: dict[Any, Any] | None = None) -> dict[str, str]:
+    """Per stage: ``fresh`` / ``stale`` / ``missing`` (see ``PhotoRun.status``). For a whole catalog,
+    ``hashes`` avoids re-reading unchanged photos and one shared ``memo`` (with the same ``cfg``
+    object) avoids re-hashing the same configuration for every photo."""
     run = PhotoRun(Path(photo), key, store, cfg, "", init_mesh, None, None)
     if hashes is not None:
         run.hash_photo = hashes.sha256
+    if memo is not None:
+        run.memo = memo
     return run.status()
 
 

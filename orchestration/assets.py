@@ -84,6 +84,9 @@ def _logging_progress(context: AssetExecutionContext, every_s: float = 15.0) -> 
     last = [0.0]
 
     def report(event: ProgressEvent) -> None:
+        if event.stage.count(":") == 2:  # "key:stage:status" once a stage is done
+            context.log.info(event.stage.replace(":", " · "))
+            return
         now = time.monotonic()
         if event.step >= event.total or now - last[0] >= every_s:
             last[0] = now

@@ -29,6 +29,9 @@ from orchestration.resources import MorpheusResource
 from orchestration.schedules import needs_run
 from orchestration.settings import OrchestrationSettings
 
+# Stage progress and failures (INFO and up), not Dagster's per-event DEBUG lines.
+QUIET = {"loggers": {"console": {"config": {"log_level": "INFO"}}}}
+
 
 def _select(resource: MorpheusResource, names: Sequence[str]) -> list[str]:
     """Photo keys for file names (or keys) in the watched folder; all photos when none are named."""
@@ -67,7 +70,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
         print(f"[{i}/{len(keys)}] {key}: materialising six assets …", file=sys.stderr, flush=True)
         start = time.perf_counter()
         result = job.execute_in_process(partition_key=key, instance=instance, raise_on_error=False,
-                                        tags={"morpheus/trigger": "cli"})
+                                        tags={"morpheus/trigger": "cli"}, run_config=QUIET)
         wall = time.perf_counter() - start
         store = resource.store()
         glb = store.stage_dir(key, "uv_bake") / ASSET_GLB

@@ -52,8 +52,8 @@ class MorpheusResource(ConfigurableResource):
         """Stage status (fresh / stale / missing) per key whose photo is present; photos are hashed
         only when they changed since the last look."""
         names, store, cfg = self.photos(), self.store(), self.pipeline_config()
-        hashes = PhotoHashes(self.store_root)
-        out = {k: photo_status(Path(self.photo_dir) / names[k], store, cfg, k, hashes=hashes)
+        hashes, memo = PhotoHashes(self.store_root), {}
+        out = {k: photo_status(Path(self.photo_dir) / names[k], store, cfg, k, hashes=hashes, memo=memo)
                for k in keys if k in names}
         hashes.save()
         return out

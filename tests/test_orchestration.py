@@ -207,8 +207,13 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
 
         monkeypatch.setattr(assets_module, "_logging_progress", real_progress)
         options = dg.ReexecutionOptions.from_failure(first.run_id, instance)
-        again = dg.execute_job(dg.reconstructable(_tiny_job), instance=instance, reexecution_options=options,
-                               tags={k: v for k, v in first.dagster_run.tags.items() if "partition_range" in k})
+        # An instance closed by an earlier test can leave Dagster's context-local state storage
+        # pointing at it; loading the job for re-execution must see this test's instance.
+        from dagster._core.storage.defs_state.base import set_defs_state_storage
+
+        with set_defs_state_storage(instance.defs_state_storage):
+            again = dg.execute_job(dg.reconstructable(_tiny_job), instance=instance, reexecution_options=options,
+                                   tags={k: v for k, v in first.dagster_run.tags.items() if "partition_range" in k})
         assert again.success
         nerf = manifest(store, bad, "nerf_fit")
         assert nerf.metrics["resumed_from_step"] == fault_at - 1

@@ -81,10 +81,10 @@ def test_second_run_is_cached_and_one_change_reruns_only_what_follows(
     again = run_photo(PHOTOS / "mug.jpg", store, draft(), "draft", KEY)
     assert [s.status for s in again.stages] == ["cached"] * len(STAGES) and again.wall_s == 0.0
     changed = run_photo(PHOTOS / "mug.jpg", store, draft("texture.lr_grid=0.02"), "draft", KEY)
-    assert [s.status for s in changed.stages] == ["cached", "cached", "cached", "ran", "ran"]
+    assert [s.status for s in changed.stages] == ["cached", "cached", "cached", "ran", "ran", "ran"]
     assert output_hashes(store, KEY, "texture_refine") != output_hashes(src, KEY, "texture_refine")
     back = run_photo(PHOTOS / "mug.jpg", store, draft("dmtet.laplacian_weight=20"), "draft", KEY)
-    assert [s.status for s in back.stages] == ["cached", "cached", "ran", "ran", "ran"]
+    assert [s.status for s in back.stages] == ["cached", "cached", "ran", "ran", "ran", "ran"]
 
 
 class NaNOnSomeSteps(ProxyPrior):
@@ -173,7 +173,7 @@ def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoO
     out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.max_grid=32", dmtet=0), "tiny", KEY,
                     init_mesh=asset)
     assert out.error is None, out.error
-    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture_refine", "uv_bake"]
+    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture_refine", "uv_bake", "qa"]
     dm = manifest(store, KEY, "dmtet")
     assert set(dm.fingerprint.inputs) == {"reference", "init_mesh"} and "asset.glb" in dm.notes[0]
     assert dm.metrics["colour_fit_mse"] < 0.01  # the warm start reproduces the asset's texture
