@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 
 # Dagster with a project-local instance (./dagster_home) watching the bundled photos by default;
 # MORPHEUS_PHOTO_DIR / MORPHEUS_STORE / MORPHEUS_PRESET … override (orchestration/settings.py).
-DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/dagster_home MORPHEUS_PHOTO_DIR=$${MORPHEUS_PHOTO_DIR:-examples/photos} \
+DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/dagster_home DAGSTER_SCHEDULE_GRPC_TIMEOUT_SECONDS=600 MORPHEUS_PHOTO_DIR=$${MORPHEUS_PHOTO_DIR:-examples/photos} \
 	MORPHEUS_STORE=$${MORPHEUS_STORE:-outputs/demo} MORPHEUS_PRESET=$${MORPHEUS_PRESET:-draft}
 
 # The main job on the bundled photos through Dagster: all six assets per photo, draft preset (a few
