@@ -23,8 +23,9 @@ JOB = "morpheus_photos"
 
 def build_definitions(executor: dg.ExecutorDefinition | None = None,
                       settings: OrchestrationSettings | None = None) -> dg.Definitions:
-    """The whole code location; ``executor`` defaults to in-process (one photo's stages run in
-    order anyway, and the priors' model cache then lives across stages)."""
+    """The whole code location. ``executor`` defaults to ``settings.executor``: in-process (one
+    photo's stages run in order anyway, and the priors' model cache then lives across stages) or
+    multiprocess (each step in its own process; models are re-loaded from disk per step)."""
     settings = settings or OrchestrationSettings.from_env()
     job = dg.define_asset_job(JOB, selection=dg.AssetSelection.assets(*STAGE_ASSET_NAMES),
                               description="All six stages for the photos (partitions) it is given.")
@@ -43,7 +44,8 @@ def build_definitions(executor: dg.ExecutorDefinition | None = None,
         sensors=[build_folder_sensor(settings, job)],
         schedules=[build_nightly_schedule(settings, job)],
         resources={"morpheus": resource},
-        executor=executor or dg.in_process_executor,
+        executor=executor or (dg.in_process_executor if settings.executor == "in_process"
+                              else dg.multiprocess_executor),
     )
 
 

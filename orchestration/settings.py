@@ -4,7 +4,8 @@
 (draft | standard | paper), ``MORPHEUS_SET`` (pipeline overrides, ``;``-separated ``key=value``),
 ``MORPHEUS_SENSOR_MAX_NEW`` (photos added per sensor tick), ``MORPHEUS_SETTLE_S`` (seconds a file
 must be untouched before it counts as uploaded), ``MORPHEUS_NIGHTLY_CRON``, ``MORPHEUS_TIMEZONE``,
-``MORPHEUS_BATCH`` (photos per backfill run), ``MORPHEUS_RETRIES``, ``MORPHEUS_RETRY_DELAY_S``.
+``MORPHEUS_BATCH`` (photos per backfill run), ``MORPHEUS_RETRIES``, ``MORPHEUS_RETRY_DELAY_S``,
+``MORPHEUS_EXECUTOR`` (``in_process`` or ``multiprocess``).
 """
 
 from __future__ import annotations
@@ -29,12 +30,15 @@ class OrchestrationSettings:
     backfill_batch: int = 8
     max_retries: int = 2
     retry_delay_s: float = 30.0
+    executor: str = "in_process"
 
     def __post_init__(self) -> None:
         if self.sensor_max_new_per_tick < 1 or self.backfill_batch < 1:
             raise ValueError("MORPHEUS_SENSOR_MAX_NEW and MORPHEUS_BATCH must be >= 1")
         if self.max_retries < 0 or self.retry_delay_s < 0 or self.settle_seconds < 0:
             raise ValueError("MORPHEUS_RETRIES, MORPHEUS_RETRY_DELAY_S and MORPHEUS_SETTLE_S must be >= 0")
+        if self.executor not in ("in_process", "multiprocess"):
+            raise ValueError(f"MORPHEUS_EXECUTOR={self.executor!r}: expected in_process or multiprocess")
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> OrchestrationSettings:
@@ -64,4 +68,5 @@ class OrchestrationSettings:
             backfill_batch=int(get("MORPHEUS_BATCH", d.backfill_batch, int)),
             max_retries=int(get("MORPHEUS_RETRIES", d.max_retries, int)),
             retry_delay_s=float(get("MORPHEUS_RETRY_DELAY_S", d.retry_delay_s, float)),
+            executor=str(get("MORPHEUS_EXECUTOR", d.executor, str)),
         )

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import dagster as dg
+import pytest
 
+from ops.optimise import ProgressEvent
 from orchestration.definitions import JOB, build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.settings import OrchestrationSettings
@@ -57,3 +59,43 @@ def check_evaluations(result: dg.ExecuteInProcessResult) -> list:
 
 def build(root: Path, **changes: object) -> dg.Definitions:
     return build_definitions(settings=settings(root, **changes))
+
+
+class Fault:
+    """A crash injected into a running stage through its progress hook (the loop reports every
+    step in the tiny configuration, before that step's checkpoint is written)."""
+
+    def __init__(self, stage_label: str, at_step: int, once: bool) -> None:
+        self.stage_label, self.at_step, self.once = stage_label, at_step, once
+        self.fired: list[int] = []
+        self.armed = True
+
+    def disarm(self) -> None:
+        self.armed = False
+
+    def check(self, event: ProgressEvent) -> None:
+        if self.armed and event.stage == self.stage_label and event.step >= self.at_step:
+            self.fired.append(event.step)
+            if self.once:
+                self.armed = False
+            raise RuntimeError(f"injected fault at step {event.step}: the machine went away")
+
+
+def inject_fault(monkeypatch: pytest.MonkeyPatch, stage_label: str, at_step: int, once: bool = False) -> Fault:
+    """Make ``stage_label`` (``"<key>:<stage>"``) crash at ``at_step`` in every Dagster stage asset."""
+    import orchestration.assets as assets_module
+
+    fault = Fault(stage_label, at_step, once)
+    real = assets_module._logging_progress
+
+    def wrapped(context: dg.AssetExecutionContext) -> Callable[[ProgressEvent], None]:
+        report = real(context)
+
+        def hook(event: ProgressEvent) -> None:
+            fault.check(event)
+            report(event)
+
+        return hook
+
+    monkeypatch.setattr(assets_module, "_logging_progress", wrapped)
+    return fault

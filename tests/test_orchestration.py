@@ -28,6 +28,7 @@ from orchestration.partitions import PHOTOS
 from tests.orchestration_helpers import (
     build,
     check_evaluations,
+    inject_fault,
     materializations,
     photo_folder,
     run_job,
@@ -168,29 +169,15 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """A backfill batch of two photos; one crashes half-way through its NeRF stage. The other photo
     finishes the stage; re-executing from the failure resumes the crashed one at its checkpoint."""
-    import orchestration.assets as assets_module
-
     photo_folder(tmp_path, ["bottle.jpg", KEY])
     defs = build(tmp_path)
     bad, good = "bottle.jpg", KEY
     fault_at = 5  # checkpoints every 2 steps: the newest one before the fault is at step 4
-    real_progress = assets_module._logging_progress
-
-    def faulty(context):
-        report = real_progress(context)
-
-        def hook(event):
-            if event.stage == f"{bad}:nerf_fit" and event.step >= fault_at:
-                raise RuntimeError("injected fault: the machine went away")
-            report(event)
-
-        return hook
-
     monkeypatch.setenv("MORPHEUS_TEST_ROOT", str(tmp_path))
     home = tmp_path / "home"
     home.mkdir()
     with dg.instance_for_test(temp_dir=str(home)) as instance:
-        monkeypatch.setattr(assets_module, "_logging_progress", faulty)
+        fault = inject_fault(monkeypatch, f"{bad}:nerf_fit", fault_at)
         first = run_job(defs, instance, [bad, good])
         assert not first.success
         mats = materializations(first)
@@ -205,7 +192,7 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
         steps = sorted({s for d in ckpt_dirs for s in Checkpoints(d, keep=3).steps()})
         assert steps and max(steps) == fault_at - 1
 
-        monkeypatch.setattr(assets_module, "_logging_progress", real_progress)
+        fault.disarm()
         options = dg.ReexecutionOptions.from_failure(first.run_id, instance)
         # An instance closed by an earlier test can leave Dagster's context-local state storage
         # pointing at it; loading the job for re-execution must see this test's instance.
@@ -231,7 +218,9 @@ def _tiny_job() -> dg.JobDefinition:
     from orchestration.definitions import build_definitions
     from tests.orchestration_helpers import settings
 
-    return build_definitions(settings=settings(Path(os.environ["MORPHEUS_TEST_ROOT"]))).resolve_job_def(JOB)
+    root = Path(os.environ["MORPHEUS_TEST_ROOT"])
+    executor = os.environ.get("MORPHEUS_EXECUTOR", "in_process")
+    return build_definitions(settings=settings(root, executor=executor)).resolve_job_def(JOB)
 
 
 def test_definitions_validate_with_the_dagster_command(tmp_path: Path) -> None:
@@ -262,3 +251,57 @@ def test_backfill_from_the_command_line_is_submitted(tmp_path: Path) -> None:
         backfills = instance.get_backfills()
         assert len(backfills) == 1
         assert sorted(backfills[0].partition_names) == ["bottle.jpg", KEY]
+
+
+def test_transient_failure_is_retried_and_resumes_from_the_checkpoint(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """The retry policy re-runs a stage that crashed half-way; the retry starts at the checkpoint."""
+    photo_folder(tmp_path, [KEY])
+    defs = build(tmp_path, max_retries=1)
+    fault = inject_fault(monkeypatch, f"{KEY}:dmtet", 3, once=True)
+    home = tmp_path / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance:
+        result = run_job(defs, instance, [KEY])
+        assert result.success
+        assert fault.fired == [3]
+        retries = [e for e in result.all_events if e.event_type_value == "STEP_UP_FOR_RETRY"]
+        assert [e.step_key for e in retries] == ["dmtet_mesh"]
+        dmtet = manifest(Store(tmp_path / "store"), KEY, "dmtet")
+        assert dmtet.metrics["resumed_from_step"] == 2  # dmtet checkpoints every 2 steps in the tiny config
+        assert materializations(result)[("dmtet_mesh", KEY)]["resumed_from_step"].value == 2
+
+
+def test_a_removed_photo_fails_at_once_without_retries(tmp_path: Path) -> None:
+    photo_folder(tmp_path, [])
+    defs = build(tmp_path, max_retries=2, retry_delay_s=30.0)
+    home = tmp_path / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance:
+        result = run_job(defs, instance, ["gone.jpg"])
+        assert not result.success
+        assert not [e for e in result.all_events if e.event_type_value == "STEP_UP_FOR_RETRY"]
+        failure = next(e for e in result.all_events if e.event_type_value == "STEP_FAILURE")
+        message = failure.event_specific_data.error.to_string()
+        assert "gone.jpg" in message and str(tmp_path / "photos") in message and "UnknownPhotoError" in message
+        assert not (tmp_path / "store" / "gone.jpg" / "reference").exists()
+
+
+def test_multiprocess_executor_runs_a_stage_in_a_child_process(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    from dagster._core.storage.defs_state.base import set_defs_state_storage
+
+    photo_folder(tmp_path, [KEY])
+    monkeypatch.setenv("MORPHEUS_TEST_ROOT", str(tmp_path))
+    monkeypatch.setenv("MORPHEUS_EXECUTOR", "multiprocess")
+    monkeypatch.setenv("PYTHONPATH", str(ROOT))
+    home = tmp_path / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance, set_defs_state_storage(instance.defs_state_storage):
+        instance.add_dynamic_partitions(PHOTOS, [KEY])
+        result = dg.execute_job(dg.reconstructable(_tiny_job), instance=instance, tags={"dagster/partition": KEY},
+                                asset_selection=[dg.AssetKey("reference")])
+        assert result.success
+        engine = " ".join(e.message or "" for e in result.all_events if e.event_type_value == "ENGINE_EVENT")
+        assert "multiprocess" in engine.lower() or "subprocess" in engine.lower(), engine
+        assert Store(tmp_path / "store").read_manifest(KEY, "reference") is not None

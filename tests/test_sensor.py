@@ -159,3 +159,5 @@ def test_settings_from_environment() -> None:
         OrchestrationSettings.from_env({"MORPHEUS_BATCH": "lots"})
     with pytest.raises(ValueError, match="MORPHEUS_BATCH"):
         OrchestrationSettings.from_env({"MORPHEUS_BATCH": "0"})
+    with pytest.raises(ValueError, match="MORPHEUS_EXECUTOR"):
+        OrchestrationSettings.from_env({"MORPHEUS_EXECUTOR": "threads"})
