@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 from assets_store.manifest import Manifest
