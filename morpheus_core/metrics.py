@@ -1,12 +1,42 @@
-"""Weight-free image metrics (always available; no model weights)."""
+"""Weight-free QA metrics (always available; no model weights).
+
+Image conventions: images are float tensors in [0, 1], (C, H, W) or (N, C, H, W) (C = 3 wherever colour is
+involved); masks are (H, W), (1, H, W), (1, 1, H, W) or (N, 1, H, W) in [0, 1]. A mask with one slice
+applies to every image of a batch. Soft masks weight pixels (PSNR, SSIM, colour histograms, hf_ratio);
+silhouette IoU thresholds them (> 0.5, like ``ops.qa.mask_iou``).
+
+Non-finite values never leave this module silently:
+
+* NaN/Inf inputs raise ``MetricInputError`` (a ``ValueError``) naming the argument;
+* an empty region (a mask with zero weight where a mean is needed) gives ``None``, except in ``ssim``,
+  whose ``float`` result cannot say "nothing measured" and which raises ``EmptyRegionError`` instead;
+* PSNR of identical inputs is ``math.inf`` (the only non-finite value returned, by the usual convention;
+  JSON writers in ``assets_store`` already store it as the string "inf").
+"""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
+import numpy as np
+import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from morpheus_core.color import rgb_to_lab
+from morpheus_core.frequency import high_frequency_ratio
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+
+class MetricInputError(ValueError):
+    """A metric was handed an argument of the wrong shape, dtype or range, or holding NaN/Inf."""
+
+
+class EmptyRegionError(MetricInputError):
+    """A metric that must return a number was asked to average over an empty region."""
 
 
 def psnr(x: Tensor, y: Tensor, max_value: float = 1.0) -> float:
@@ -26,3 +56,556 @@ def mean_colour_error(x: Tensor, y: Tensor) -> float:
     lab_x = rgb_to_lab(x).mean(dim=(-2, -1))
     lab_y = rgb_to_lab(y).mean(dim=(-2, -1))
     return float((lab_x - lab_y).pow(2).sum(dim=-1).sqrt().mean())
+
+
+# -- input checking ------------------------------------------------------------------------------
+
+# Masks from renderers overshoot [0, 1] by float rounding; anything further out is a caller's bug.
+_MASK_SLACK = 1e-4
+
+
+def _finite(t: object, name: str) -> Tensor:
+    """``t`` as a float64 CPU tensor, or a MetricInputError naming ``name``."""
+    if not isinstance(t, Tensor):
+        raise MetricInputError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.dtype == torch.bool:
+        t = t.to(torch.float64)
+    elif not t.is_floating_point():
+        raise MetricInputError(f"{name} must be a floating-point (or bool) tensor, got {t.dtype}")
+    t = t.detach().to("cpu", torch.float64)
+    if not bool(torch.isfinite(t).all()):
+        raise MetricInputError(f"{name} holds NaN/Inf values")
+    return t
+
+
+def _images(x: object, name: str, colour: bool = False) -> Tensor:
+    """(N, C, H, W) float64 from (C, H, W) or (N, C, H, W)."""
+    t = _finite(x, name)
+    if t.dim() == 3:
+        t = t.unsqueeze(0)
+    if t.dim() != 4 or t.shape[0] == 0 or t.shape[-1] == 0 or t.shape[-2] == 0:
+        raise MetricInputError(f"{name} must be (C, H, W) or (N, C, H, W) with N, H, W > 0, got {tuple(x.shape)}")
+    if colour and t.shape[1] != 3:
+        raise MetricInputError(f"{name} must have 3 colour channels at dim -3, got shape {tuple(x.shape)}")
+    return t
+
+
+def _image_pair(x: object, y: object) -> tuple[Tensor, Tensor]:
+    xs, ys = _images(x, "x"), _images(y, "y")
+    if xs.shape != ys.shape:
+        raise MetricInputError(f"x and y differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
+    return xs, ys
+
+
+def _masks(m: object, name: str, n: int | None, h: int, w: int) -> Tensor:
+    """(N, 1, H, W) float64 in [0, 1]; a single mask is repeated over the batch of ``n`` (None: keep its own N)."""
+    t = _finite(m, name)
+    if t.dim() == 2:
+        t = t[None, None]
+    elif t.dim() == 3:
+        t = t.unsqueeze(0) if t.shape[0] == 1 else t.unsqueeze(1)
+    if t.dim() != 4 or t.shape[1] != 1 or tuple(t.shape[-2:]) != (h, w) or t.shape[0] == 0:
+        raise MetricInputError(f"{name} must be (H, W), (1, H, W) or (N, 1, H, W) with H×W = {h}×{w}, "
+                               f"got {tuple(m.shape)}")
+    if n is not None and t.shape[0] not in (1, n):
+        raise MetricInputError(f"{name} holds {t.shape[0]} masks for {n} images")
+    if float(t.min()) < -_MASK_SLACK or float(t.max()) > 1.0 + _MASK_SLACK:
+        raise MetricInputError(f"{name} values must lie in [0, 1], got [{float(t.min()):.4g}, {float(t.max()):.4g}]")
+    t = t.clamp(0.0, 1.0)
+    return t.expand(n, 1, h, w) if n is not None else t
+
+
+def _mask_2d(m: object, name: str) -> Tensor:
+    """A silhouette (or a batch of them) as (N, 1, H, W), whatever layout it came in."""
+    if not isinstance(m, Tensor):
+        raise MetricInputError(f"{name} must be a torch.Tensor, got {type(m).__name__}")
+    if m.dim() < 2:
+        raise MetricInputError(f"{name} must have at least 2 dims (H, W), got {tuple(m.shape)}")
+    return _masks(m, name, None, int(m.shape[-2]), int(m.shape[-1]))
+
+
+# -- PSNR ----------------------------------------------------------------------------------------
+
+
+def _weighted_psnr(sq: Tensor, weight: Tensor, channels: int, max_value: float) -> float | None:
+    total = float(weight.sum())
+    if total <= 0.0:
+        return None
+    mse = float((sq * weight).sum()) / (total * channels)
+    if mse == 0.0:
+        return math.inf
+    return 10.0 * math.log10(max_value**2 / mse)
+
+
+def masked_psnr(x: Tensor, y: Tensor, mask: Tensor, max_value: float = 1.0) -> tuple[float | None, float | None]:
+    """PSNR (dB) inside and outside ``mask``: the squared error of each pixel is weighted by the mask
+    (inside) or 1 − mask (outside), and averaged over the channels and the region's total weight.
+
+    Returns ``(inside, outside)``. A region whose error is exactly zero gives ``math.inf`` (callers
+    must handle it, e.g. by capping); a region of zero weight (an all-0 or all-1 mask) gives ``None``.
+    """
+    if not (math.isfinite(max_value) and max_value > 0):
+        raise MetricInputError(f"max_value must be a positive finite number, got {max_value}")
+    xs, ys = _image_pair(x, y)
+    n, c, h, w = xs.shape
+    m = _masks(mask, "mask", n, h, w)
+    sq = (xs - ys).pow(2).sum(dim=1, keepdim=True)
+    return _weighted_psnr(sq, m, c, max_value), _weighted_psnr(sq, 1.0 - m, c, max_value)
+
+
+# -- SSIM ----------------------------------------------------------------------------------------
+
+_SSIM_K1 = 0.01
+_SSIM_K2 = 0.03
+
+
+def _gaussian_kernel(window: int, sigma: float) -> Tensor:
+    if window < 1 or window % 2 == 0:
+        raise MetricInputError(f"window must be a positive odd integer, got {window}")
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise MetricInputError(f"sigma must be positive and finite, got {sigma}")
+    r = torch.arange(window, dtype=torch.float64) - (window - 1) / 2
+    g = torch.exp(-0.5 * (r / sigma) ** 2)
+    return g / g.sum()
+
+
+def _ssim_map(xs: Tensor, ys: Tensor, window: int, sigma: float, data_range: float) -> Tensor:
+    """Per-pixel SSIM (N, C, H − window + 1, W − window + 1): 'valid' windows only.
+
+    Only pixels whose whole window lies inside the image get a value, so no padding convention
+    enters the result; this is exactly the region scikit-image averages (it filters with reflect
+    padding and then crops (window − 1)/2 pixels from every border)."""
+    n, c, h, w = xs.shape
+    if h < window or w < window:
+        raise MetricInputError(f"SSIM needs images at least {window}×{window} (the window), got {h}×{w}")
+    if not (math.isfinite(data_range) and data_range > 0):
+        raise MetricInputError(f"data_range must be positive and finite, got {data_range}")
+    g = _gaussian_kernel(window, sigma)
+    c1, c2 = (_SSIM_K1 * data_range) ** 2, (_SSIM_K2 * data_range) ** 2
+    maps = []
+    # One image at a time bounds memory: five float64 moment maps per channel.
+    for i in range(n):
+        x, y = xs[i : i + 1], ys[i : i + 1]
+        stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+        groups = stack.shape[1]
+        out = F.conv2d(stack, g.view(1, 1, 1, window).expand(groups, 1, 1, window), groups=groups)
+        out = F.conv2d(out, g.view(1, 1, window, 1).expand(groups, 1, window, 1), groups=groups)
+        mu_x, mu_y, xx, yy, xy = out.split(c, dim=1)
+        var_x, var_y, cov = xx - mu_x * mu_x, yy - mu_y * mu_y, xy - mu_x * mu_y
+        num = (2 * mu_x * mu_y + c1) * (2 * cov + c2)
+        # c1, c2 > 0 and the variances are ≥ −rounding, so the denominator is positive: no 0/0.
+        den = (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+        maps.append(num / den)
+    return torch.cat(maps)
+
+
+def _region_means(values: Tensor, weight: Tensor) -> tuple[float | None, float | None]:
+    """Weighted means of ``values`` (N, 1, h, w) under weight and 1 − weight; None for zero weight."""
+    out: list[float | None] = []
+    for wt in (weight, 1.0 - weight):
+        total = float(wt.sum())
+        out.append(None if total <= 0.0 else float((values * wt).sum()) / total)
+    return out[0], out[1]
+
+
+def _ssim_mean_map(x: Tensor, y: Tensor, window: int, sigma: float, data_range: float) -> Tensor:
+    """The SSIM map averaged over channels, (N, 1, h, w)."""
+    xs, ys = _image_pair(x, y)
+    return _ssim_map(xs, ys, window, sigma, data_range).mean(dim=1, keepdim=True)
+
+
+def _centre_weights(mask: Tensor, x: Tensor, window: int) -> Tensor:
+    """The mask at the SSIM map's pixels: map pixel (i, j) is the window centred on image pixel
+    (i + window // 2, j + window // 2)."""
+    xs = _images(x, "x")
+    n, _, h, w = xs.shape
+    half = window // 2
+    return _masks(mask, "mask", n, h, w)[..., half : h - half, half : w - half]
+
+
+def ssim(x: Tensor, y: Tensor, mask: Tensor | None = None, window: int = 11, sigma: float = 1.5,
+         *, data_range: float = 1.0) -> float:
+    """Mean structural similarity with a Gaussian window (``window`` taps, ``sigma``), constants
+    K1 = 0.01, K2 = 0.03, computed per channel and averaged over channels and images.
+
+    Padding: 'valid' — the map covers only pixels whose window lies inside the image, the same
+    region scikit-image's ``structural_similarity(gaussian_weights=True, sigma=1.5,
+    use_sample_covariance=False)`` averages. Identical images give 1.0; constant images stay finite.
+    With ``mask`` the map is averaged with the mask (at each window's centre) as weight; a mask with
+    no weight there raises ``EmptyRegionError`` (use ``masked_ssim`` for a None instead).
+    """
+    smap = _ssim_mean_map(x, y, window, sigma, data_range)
+    if mask is None:
+        return float(smap.mean())
+    inside, _ = _region_means(smap, _centre_weights(mask, x, window))
+    if inside is None:
+        raise EmptyRegionError(f"mask has no weight at the {smap.shape[-2]}×{smap.shape[-1]} SSIM window centres "
+                               f"(borders of {window // 2} px are outside every full window)")
+    return inside
+
+
+def masked_ssim(x: Tensor, y: Tensor, mask: Tensor, window: int = 11, sigma: float = 1.5,
+                *, data_range: float = 1.0) -> tuple[float | None, float | None]:
+    """Mean of the SSIM map (see ``ssim``) inside and outside ``mask``, weighted by mask / 1 − mask at
+    each window's centre. ``None`` for a region with no weight among the valid window centres."""
+    smap = _ssim_mean_map(x, y, window, sigma, data_range)
+    return _region_means(smap, _centre_weights(mask, x, window))
+
+
+# -- silhouettes ---------------------------------------------------------------------------------
+
+
+def mask_iou(a: Tensor, b: Tensor) -> float:
+    """Intersection over union of two silhouettes (or batches of them) thresholded at > 0.5.
+
+    1.0 when both are empty: there is nothing to disagree on (the same rule as ``ops.qa.mask_iou``).
+    """
+    ma, mb = _mask_2d(a, "a") > 0.5, _mask_2d(b, "b") > 0.5
+    if ma.shape[-2:] != mb.shape[-2:] or (ma.shape[0] != mb.shape[0] and 1 not in (ma.shape[0], mb.shape[0])):
+        raise MetricInputError(f"a and b differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
+    union = int((ma | mb).sum())
+    return 1.0 if union == 0 else int((ma & mb).sum()) / union
+
+
+# -- frequency content ---------------------------------------------------------------------------
+
+# Rec. 709 luma weights: the spectrum of perceived brightness, not of each channel separately.
+_LUMA = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64)
+# A reference whose HF share is below this has no texture to lose; a ratio against it is meaningless.
+_FLAT_HF_SHARE = 1e-9
+
+
+def _luma(images: Tensor) -> Tensor:
+    return torch.einsum("c,nchw->nhw", _LUMA, images)
+
+
+def _fill_outside(lum: Tensor, weight: Tensor) -> Tensor | None:
+    """Blend the background to the region's mean luminance; None for an empty region.
+
+    The silhouette against the background would otherwise be the strongest edge in the image and
+    swamp the texture's spectrum; filling with the masked mean leaves only the object's own contrast."""
+    total = float(weight.sum())
+    if total <= 0.0:
+        return None
+    mean = float((lum * weight).sum()) / total
+    return weight * lum + (1.0 - weight) * mean
+
+
+def _hf_share(lum: Tensor, weight: Tensor | None, cutoff: float) -> float | None:
+    if weight is not None:
+        filled = _fill_outside(lum, weight)
+        if filled is None:
+            return None
+        lum = filled
+    return high_frequency_ratio(lum, cutoff)
+
+
+def hf_ratio(views: Tensor, reference: Tensor, cutoff: float = 0.5, mask: Tensor | None = None,
+             reference_mask: Tensor | None = None) -> float | None:
+    """High-frequency energy of rendered views relative to the reference photo.
+
+    For every image: luminance (Rec. 709 weights of the sRGB values); with masks, the background
+    blended to the object's mean luminance; then its HF share = the fraction of mean-removed spectral
+    energy at radius ≥ ``cutoff``·Nyquist (``frequency.high_frequency_ratio``). The result is the mean
+    share over the views divided by the reference's share: 1 for views as detailed as the photo, < 1
+    for blurrier ones (the paper's 3D-prior-only novel views), > 1 for noisier ones.
+
+    ``mask`` (for the views) and ``reference_mask`` must be given together; views whose mask is empty
+    are left out of the mean. Returns ``None`` when the reference is flat (HF share < 1e-9: nothing to
+    lose), its mask is empty, or every view's mask is empty. Views and reference must share H×W, since
+    the cutoff is a fraction of each image's own Nyquist frequency.
+    """
+    if (mask is None) != (reference_mask is None):
+        raise MetricInputError("hf_ratio needs both mask and reference_mask, or neither")
+    vs = _images(views, "views", colour=True)
+    ref = _images(reference, "reference", colour=True)
+    if ref.shape[0] != 1:
+        raise MetricInputError(f"reference must be a single image, got a batch of {ref.shape[0]}")
+    n, _, h, w = vs.shape
+    if tuple(ref.shape[-2:]) != (h, w):
+        raise MetricInputError(f"views are {h}×{w} but the reference is {ref.shape[-2]}×{ref.shape[-1]}")
+    if not 0.0 < cutoff < 1.0:
+        raise MetricInputError(f"cutoff must lie in (0, 1), got {cutoff}")
+    view_w = _masks(mask, "mask", n, h, w)[:, 0] if mask is not None else None
+    ref_w = _masks(reference_mask, "reference_mask", 1, h, w)[:, 0] if reference_mask is not None else None
+
+    ref_share = _hf_share(_luma(ref)[0], None if ref_w is None else ref_w[0], cutoff)
+    if ref_share is None or ref_share < _FLAT_HF_SHARE:
+        return None
+    lum = _luma(vs)
+    shares = [_hf_share(lum[i], None if view_w is None else view_w[i], cutoff) for i in range(n)]
+    measured = [s for s in shares if s is not None]
+    if not measured:
+        return None
+    return (sum(measured) / len(measured)) / ref_share
+
+
+# -- colour distribution -------------------------------------------------------------------------
+
+# a*, b* of sRGB colours lie within about [−108, 99]; the usual 8-bit Lab range holds them all.
+_AB_RANGE = (-128.0, 128.0)
+
+
+def _ab_histogram(rgb: Tensor, weight: Tensor, bins: int) -> Tensor | None:
+    """Normalised bins×bins a*b* histogram of one image (3, H, W) weighted by ``weight`` (H, W).
+
+    Soft (bilinear) binning: each pixel splits its weight between the two nearest bin centres per
+    axis, so the distance changes smoothly with colour instead of jumping at bin borders."""
+    total = float(weight.sum())
+    if total <= 0.0:
+        return None
+    lab = rgb_to_lab(rgb).double()
+    keep = weight > 0
+    wts = weight[keep]
+    lo, hi = _AB_RANGE
+    width = (hi - lo) / bins
+    hist = torch.zeros(bins * bins, dtype=torch.float64)
+    coords = []
+    for ch in (1, 2):
+        t = ((lab[ch][keep] - lo) / width - 0.5).clamp(0.0, bins - 1.0)
+        i0 = t.floor().long().clamp(max=bins - 1)
+        frac = t - i0
+        coords.append(((i0, 1.0 - frac), ((i0 + 1).clamp(max=bins - 1), frac)))
+    for ia, wa in coords[0]:
+        for ib, wb in coords[1]:
+            hist.index_add_(0, ia * bins + ib, wts * wa * wb)
+    return hist / hist.sum()
+
+
+def colour_deviation(views: Tensor, view_masks: Tensor, reference: Tensor, reference_mask: Tensor,
+                     bins: int = 16) -> float | None:
+    """Distance between the colour distribution of the views (e.g. a turntable) and the reference,
+    inside the masks: 1 − Bhattacharyya coefficient of normalised a*b* histograms (CIE Lab, D65).
+
+    Histograms: ``bins``×``bins`` over a*, b* ∈ [−128, 128] with bilinear soft binning, pixels weighted
+    by their mask value. L* is left out on purpose: novel views are shaded differently from the photo,
+    while the paper's low-frequency drift is a change of hue and saturation. The views' histograms
+    are normalised one by one and averaged, so every view counts equally whatever its silhouette size.
+
+    The value lies in [0, 1]: 0 for identical distributions, 1 for disjoint ones. ``None`` when the
+    reference mask is empty or every view mask is empty (views with empty masks are left out).
+    The views may have a different resolution than the reference.
+    """
+    if not isinstance(bins, int) or bins < 2:
+        raise MetricInputError(f"bins must be an integer ≥ 2, got {bins!r}")
+    vs = _images(views, "views", colour=True)
+    ref = _images(reference, "reference", colour=True)
+    if ref.shape[0] != 1:
+        raise MetricInputError(f"reference must be a single image, got a batch of {ref.shape[0]}")
+    n, _, h, w = vs.shape
+    vm = _masks(view_masks, "view_masks", n, h, w)
+    rm = _masks(reference_mask, "reference_mask", 1, ref.shape[-2], ref.shape[-1])
+    ref_hist = _ab_histogram(ref[0], rm[0, 0], bins)
+    if ref_hist is None:
+        return None
+    view_hists = [hst for i in range(n) if (hst := _ab_histogram(vs[i], vm[i, 0], bins)) is not None]
+    if not view_hists:
+        return None
+    view_hist = torch.stack(view_hists).mean(dim=0)
+    bc = float(torch.sqrt(view_hist * ref_hist).sum())
+    # Rounding can push the coefficient a hair above 1 for identical histograms.
+    return min(1.0, max(0.0, 1.0 - bc))
+
+
+# -- mesh health ---------------------------------------------------------------------------------
+
+# Faces with area below this fraction of the squared bounding-box diagonal count as degenerate:
+# scale-free, and far below any triangle a renderer would draw at a sensible resolution.
+_DEGENERATE_REL_AREA = 1e-12
+# UVs of one welded vertex on the two faces of an edge closer than this are the same UV (no seam).
+_UV_SEAM_TOL = 1e-6
+# Default UV raster size when no texture is given to measure coverage at.
+_DEFAULT_UV_RESOLUTION = 512
+
+
+def _array(a: ArrayLike | Tensor, name: str, dtype: type, cols: int) -> np.ndarray:
+    if isinstance(a, Tensor):
+        a = a.detach().cpu().numpy()
+    arr = np.asarray(a)
+    if arr.ndim != 2 or arr.shape[1] != cols:
+        raise MetricInputError(f"{name} must have shape (N, {cols}), got {arr.shape}")
+    if dtype is np.int64:
+        if arr.size and not np.issubdtype(arr.dtype, np.integer):
+            raise MetricInputError(f"{name} must hold integers, got {arr.dtype}")
+        return arr.astype(np.int64)
+    if not np.issubdtype(arr.dtype, np.floating) and arr.size:
+        raise MetricInputError(f"{name} must be floating point, got {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise MetricInputError(f"{name} holds NaN/Inf values")
+    return arr
+
+
+def _texture(texture: ArrayLike | Tensor) -> np.ndarray:
+    if isinstance(texture, Tensor):
+        texture = texture.detach().cpu().numpy()
+    tex = np.asarray(texture)
+    if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
+        raise MetricInputError(f"texture must have shape (H, W, 3), got {tex.shape}")
+    if tex.dtype == np.uint8:
+        return tex.astype(np.float64) / 255.0
+    if not np.issubdtype(tex.dtype, np.floating):
+        raise MetricInputError(f"texture must be float in [0, 1] or uint8, got {tex.dtype}")
+    tex = tex.astype(np.float64)
+    if not np.isfinite(tex).all():
+        raise MetricInputError("texture holds NaN/Inf values")
+    return tex
+
+
+def _uv_raster(uvs: np.ndarray, faces: np.ndarray, height: int, width: int) -> int:
+    """Number of texels whose centre lies in at least one UV triangle (row 0 at v = 1)."""
+    from morpheus_core.render.raster import rasterize
+
+    uv = torch.from_numpy(uvs)
+    # Orthographic UV "camera": NDC x = 2u − 1, y = 2v − 1, so image row 0 is v = 1 as in the bake.
+    clip = torch.cat([uv * 2 - 1, torch.zeros_like(uv[:, :1]), torch.ones_like(uv[:, :1])], dim=1)
+    frags = rasterize(clip, torch.from_numpy(faces), height, width)
+    return int((frags.face_id >= 0).sum())
+
+
+def _bilinear(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear texture lookup at uv (..., 2), v up, texel centres at ((j + ½)/W, 1 − (i + ½)/H), clamped."""
+    h, w = tex.shape[:2]
+    x = np.clip(uv[..., 0] * w - 0.5, 0.0, w - 1.0)
+    y = np.clip((1.0 - uv[..., 1]) * h - 0.5, 0.0, h - 1.0)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
+    bottom = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _seams(faces: np.ndarray, welded: np.ndarray, uvs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """UV seams: 3-D edges (by welded position) shared by exactly two faces whose UVs there differ.
+
+    Returns the UV end points of both sides stacked as (2, S, 2 ends, 2), ordered alike (side B's
+    ends are matched to side A's by position, whatever the faces' winding), and the original vertex
+    ids of side A's ends (S, 2) for edge lengths. Boundary and non-manifold edges are not seams."""
+    corner_a = faces.reshape(-1)
+    corner_b = faces[:, [1, 2, 0]].reshape(-1)
+    wa, wb = welded[faces].reshape(-1), welded[faces[:, [1, 2, 0]]].reshape(-1)
+    proper = wa != wb
+    corner_a, corner_b, wa, wb = corner_a[proper], corner_b[proper], wa[proper], wb[proper]
+    lo, hi = np.minimum(wa, wb), np.maximum(wa, wb)
+    keys = lo * (int(welded.max()) + 1) + hi
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    _, start, counts = np.unique(keys, return_index=True, return_counts=True)
+    pairs = start[counts == 2]
+    first, second = order[pairs], order[pairs + 1]
+    a0, a1 = corner_a[first], corner_b[first]
+    b0, b1 = corner_a[second], corner_b[second]
+    # Align side B to side A: its corner at A's first welded position goes first.
+    flip = welded[b0] != welded[a0]
+    b0, b1 = np.where(flip, b1, b0), np.where(flip, b0, b1)
+    uv_a = np.stack([uvs[a0], uvs[a1]], axis=1)
+    uv_b = np.stack([uvs[b0], uvs[b1]], axis=1)
+    seam = np.abs(uv_a - uv_b).max(axis=(1, 2)) > _UV_SEAM_TOL
+    return np.stack([uv_a[seam], uv_b[seam]]), np.stack([a0[seam], a1[seam]], axis=1)
+
+
+def _seam_leakage(vertices: np.ndarray, faces: np.ndarray, welded: np.ndarray, uvs: np.ndarray,
+                  tex: np.ndarray, samples: int = 4) -> tuple[float, int]:
+    """Length-weighted mean absolute colour difference between the two sides of every UV seam."""
+    (uv_a, uv_b), ends = _seams(faces, welded, uvs)
+    if len(ends) == 0:
+        return 0.0, 0
+    # Interior points only: the corners are shared with other seams and would be counted twice.
+    t = (np.arange(samples, dtype=np.float64) + 1.0) / (samples + 1.0)
+    pts_a = uv_a[:, :1] * (1 - t[None, :, None]) + uv_a[:, 1:] * t[None, :, None]
+    pts_b = uv_b[:, :1] * (1 - t[None, :, None]) + uv_b[:, 1:] * t[None, :, None]
+    diff = np.abs(_bilinear(tex, pts_a) - _bilinear(tex, pts_b)).mean(axis=(1, 2))
+    length = np.linalg.norm(vertices[ends[:, 0]] - vertices[ends[:, 1]], axis=1)
+    if length.sum() <= 0:
+        return float(diff.mean()), len(ends)
+    return float((diff * length).sum() / length.sum()), len(ends)
+
+
+def mesh_health(vertices: ArrayLike | Tensor, faces: ArrayLike | Tensor, uvs: ArrayLike | Tensor | None = None,
+                texture: ArrayLike | Tensor | None = None, *,
+                uv_resolution: int = _DEFAULT_UV_RESOLUTION) -> dict[str, float | int | bool | None]:
+    """Topology, UV and texture health of a (textured) triangle mesh.
+
+    ``vertices`` (V, 3) float, ``faces`` (F, 3) int, ``uvs`` (V, 2) per vertex with v up, ``texture``
+    (H, W, 3) float in [0, 1] (or uint8) with row 0 at v = 1 — the layout ``texture.bake_uv`` writes.
+    Topology is measured on vertices welded by position (trimesh's 1e-8 merge precision), because UV
+    seams split vertices that are one point of the surface:
+
+    * ``faces``, ``vertices``: the counts as given; ``components``: edge-connected face components;
+    * ``watertight``: every welded edge has exactly two faces; ``winding_consistent``: trimesh's check;
+    * ``euler_number``: V − E + F of the welded mesh (2 for a closed sphere-like surface);
+    * ``degenerate_faces``: faces with area ≤ 1e-12 × (bounding-box diagonal)², repeated corners included;
+    * ``surface_area``: total 3-D area;
+    * ``uv_coverage``: fraction of texels (at the texture's size, else ``uv_resolution``²) whose centre
+      lies inside at least one UV triangle — rasterised, so overlapping charts count once. The cost
+      grows with the summed UV area in texels: under a second for a packed 20k-face atlas at 1024²,
+      but F·H·W for F triangles that each span the whole square;
+    * ``texel_density``: sqrt(covered texels / surface area), texels per world unit along the surface
+      (uniform parametrisation assumed; stacked charts lower it since they share texels). Needs a
+      texture; None without one or with zero area;
+    * ``seam_edges``, ``seam_leakage``: 3-D edges shared by two faces whose UVs differ there, and the
+      mean absolute colour difference (over RGB, 0–1 scale) between the texture sampled bilinearly at
+      4 interior points along the edge in each face's UV, weighted by 3-D edge length. 0.0 with no seams
+      or no texture (nothing can leak); None without UVs.
+
+    A mesh with no faces gives faces 0, its vertex count, watertight False and None for the rest.
+    """
+    verts = _array(vertices, "vertices", np.float64, 3)
+    tris = _array(faces, "faces", np.int64, 3)
+    nv, nf = len(verts), len(tris)
+    if nf and (tris.min() < 0 or tris.max() >= nv):
+        raise MetricInputError(f"faces index vertices outside [0, {nv}): [{tris.min()}, {tris.max()}]")
+    uv = _array(uvs, "uvs", np.float64, 2) if uvs is not None else None
+    if uv is not None and len(uv) != nv:
+        raise MetricInputError(f"uvs must have one row per vertex ({nv}), got {len(uv)}")
+    tex = _texture(texture) if texture is not None else None
+    if not isinstance(uv_resolution, int) or uv_resolution < 1:
+        raise MetricInputError(f"uv_resolution must be a positive integer, got {uv_resolution!r}")
+
+    report: dict[str, float | int | bool | None] = {
+        "faces": nf, "vertices": nv, "components": None, "watertight": False, "winding_consistent": None,
+        "euler_number": None, "degenerate_faces": None, "surface_area": None, "uv_coverage": None,
+        "texel_density": None, "seam_edges": None, "seam_leakage": None,
+    }
+    if nf == 0:
+        return report
+
+    import trimesh
+
+    # Weld only the referenced vertices, so stray points neither join components nor shift V − E + F.
+    used = np.unique(tris)
+    _, inverse = trimesh.grouping.unique_rows(verts[used])
+    welded = np.full(nv, -1, dtype=np.int64)
+    welded[used] = inverse
+    unique_pos = np.zeros((int(inverse.max()) + 1, 3))
+    unique_pos[inverse] = verts[used]
+    mesh = trimesh.Trimesh(unique_pos, welded[tris], process=False, validate=False)
+
+    labels = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(nf), min_len=1)
+    corners = verts[tris]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    diagonal_sq = float(np.sum((verts[used].max(axis=0) - verts[used].min(axis=0)) ** 2))
+    repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+    degenerate = repeated | (areas <= _DEGENERATE_REL_AREA * diagonal_sq)
+    surface = float(areas.sum())
+    report.update({
+        "components": len(labels), "watertight": bool(mesh.is_watertight),
+        "winding_consistent": bool(mesh.is_winding_consistent), "euler_number": int(mesh.euler_number),
+        "degenerate_faces": int(degenerate.sum()), "surface_area": surface,
+    })
+    if uv is None:
+        return report
+
+    height, width = tex.shape[:2] if tex is not None else (uv_resolution, uv_resolution)
+    covered = _uv_raster(uv, tris, height, width)
+    report["uv_coverage"] = covered / (height * width)
+    if tex is not None and surface > 0:
+        report["texel_density"] = math.sqrt(covered / surface)
+    if tex is None:
+        _, ends = _seams(tris, welded, uv)
+        report["seam_edges"], report["seam_leakage"] = len(ends), 0.0
+    else:
+        leak, count = _seam_leakage(verts, tris, welded, uv, tex)
+        report["seam_edges"], report["seam_leakage"] = count, leak
+    return report
