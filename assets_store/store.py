@@ -33,6 +33,7 @@ from assets_store.manifest import MANIFEST_FILE, FileRecord, Fingerprint, Manife
 
 CHECKPOINTS_DIR = ".checkpoints"
 STAGING_DIR = ".staging"
+CATALOG_DIR = ".catalog"
 
 _STAGE_NAME = re.compile(r"[a-z0-9_]{1,64}")
 _STAGING_NAME = re.compile(r"(?P<stage>[a-z0-9_]+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]+)(?P<old>\.old)?")
@@ -165,6 +166,12 @@ class Store:
         except OSError:
             pass
         return removed
+
+    @property
+    def catalog_dir(self) -> Path:
+        """``<root>/.catalog``: the Parquet catalog (a row per photo per run); the leading dot keeps
+        it apart from photo folders (a key never starts with a dot)."""
+        return self.root / CATALOG_DIR
 
     def keys(self) -> list[str]:
         """Photo keys present under the root (folders whose names are safe keys), sorted."""

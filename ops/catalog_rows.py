@@ -9,12 +9,15 @@ the GLB, the preview and each stage's run log are, and why the run failed when i
 from __future__ import annotations
 
 import math
+import uuid
 from datetime import datetime, timezone
 from typing import Any
 
+from assets_store.catalog import Catalog
+
 from assets_store.manifest import Manifest
 from assets_store.store import Store
-from ops.pipeline import STAGES
+from ops.pipeline import STAGES, PhotoOutcome
 from ops.qa import QA_FILE, QA_TURNTABLE_FILE, read_report
 from ops.stage_common import RUNLOG_FILE
 from ops.uv_bake import ASSET_GLB
@@ -76,3 +79,11 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
     if "uv_bake" in manifests:
         row["glb_path"] = str(store.stage_dir(key, "uv_bake") / ASSET_GLB)
     return row
+
+
+def record_outcomes(store: Store, outcomes: list[PhotoOutcome], run_id: str | None = None) -> None:
+    """Append one catalog row per photo of a ``morpheus3d run`` (one run id for the whole command)."""
+    run_id = run_id or f"cli-{uuid.uuid4().hex[:12]}"
+    rows = [photo_row(store, o.key, run_id, {s.stage: s.status for s in o.stages}, o.error) for o in outcomes]
+    if rows:
+        Catalog(store.catalog_dir).append(rows)

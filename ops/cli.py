@@ -84,6 +84,14 @@ def doctor() -> int:
     u2 = rembg_model_file()
     print(f"  {'rembg u2net':<18} {'present' if u2.is_file() else 'missing':<8} {u2}  — segmentation "
           "(set $U2NET_HOME; without it the classical fallback segments)")
+    from morpheus_core.weighted_metrics import weighted_metric_status
+
+    print("\nQA metrics with weights (missing → recorded as skipped in qa.json, never downloaded):")
+    for status in weighted_metric_status():
+        state = "present" if status.present else "missing"
+        print(f"  {status.spec.name:<18} {state:<8} {status.path}  — {status.spec.purpose}")
+        for miss in status.missing:
+            print(f"      expected file: {miss}")
     print("\nStatus:", "OK" if ok else "BROKEN INSTALL (see above)")
     return 0 if ok else 1
 
@@ -124,6 +132,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     from assets_store.keys import assign_keys
     from assets_store.store import Store
+    from ops.catalog_rows import record_outcomes
     from ops.config_tree import ConfigError, flat_keys
     from ops.pipeline import run_photo
     from ops.prepare_batch import list_photos
@@ -162,7 +171,9 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"[{i}/{len(photos)}] {photo.name} -> {store.photo_dir(keys[photo.name])}", file=sys.stderr)
         outcomes.append(run_photo(photo, store, cfg, args.preset, keys[photo.name], args.init_mesh, progress,
                                   until=args.until))
+    record_outcomes(store, outcomes)
     print(format_run_table(outcomes, store))
+    print(f"catalog: {store.catalog_dir} (`morpheus3d report --store {store.root} --out report.html`)")
     return 1 if any(o.status == "failed" for o in outcomes) else 0
 
 

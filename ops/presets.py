@@ -61,6 +61,7 @@ def standard() -> PipelineConfig:
                            guidance=_nerf_guidance(3000)),
         dmtet=DMTetFitConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
         texture=TextureRefineConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
+        qa=QAConfig(eval_resolution=512, turntable_views=36),
     )
 
 
@@ -81,7 +82,7 @@ def draft() -> PipelineConfig:
                                     preview_size=128),
         bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
                           eval_resolution=128),
-        qa=QAConfig(eval_resolution=128),
+        qa=QAConfig(eval_resolution=128, turntable_views=24, turntable_resolution=128),
     )
 
 

@@ -96,11 +96,17 @@ def _logging_progress(context: AssetExecutionContext, every_s: float = 15.0) -> 
     return report
 
 
-def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, key: str) -> StageOutcome:
+def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, key: str,
+             max_retries: int) -> StageOutcome:
     try:
         return morpheus.run_stage(key, stage, _logging_progress(context))
     except PERMANENT as exc:
+        morpheus.record(key, context.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
         raise dg.Failure(description=f"{key}: {type(exc).__name__}: {exc}", allow_retries=False) from exc
+    except Exception as exc:
+        if context.retry_number >= max_retries:  # the last attempt: the catalog learns why this photo failed
+            morpheus.record(key, context.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
+        raise
 
 
 def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.AssetsDefinition:
@@ -119,7 +125,9 @@ def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.A
     def stage_asset(context: AssetExecutionContext, morpheus: MorpheusResource) -> Iterator[Any]:
         keys = list(context.partition_keys)
         if len(keys) == 1:
-            outcome = _run_one(context, morpheus, spec.stage, keys[0])
+            outcome = _run_one(context, morpheus, spec.stage, keys[0], settings.max_retries)
+            if spec.stage == "qa":
+                morpheus.record(keys[0], context.run_id, {spec.stage: outcome.status})
             checks = _checks(outcome, morpheus, keys[0])
             assert outcome.manifest is not None
             yield dg.MaterializeResult(
@@ -129,21 +137,23 @@ def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.A
                                                    description=c.message, metadata=check_metadata(c))
                                for c in checks])
             return
-        yield from _batch(context, morpheus, spec, keys)
+        yield from _batch(context, morpheus, spec, keys, settings.max_retries)
 
     return stage_asset
 
 
 def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: StageAsset,
-           keys: list[str]) -> Iterator[Any]:
+           keys: list[str], max_retries: int) -> Iterator[Any]:
     """A step over several photos: one photo's failure does not stop the others."""
     done: dict[str, tuple[StageOutcome, list[QACheck]]] = {}
     failed: dict[str, str] = {}
     for i, key in enumerate(keys, 1):
         context.log.info(f"[{i}/{len(keys)}] {key}: {spec.stage}")
         try:
-            outcome = _run_one(context, morpheus, spec.stage, key)
+            outcome = _run_one(context, morpheus, spec.stage, key, max_retries)
             done[key] = (outcome, _checks(outcome, morpheus, key))
+            if spec.stage == "qa":
+                morpheus.record(key, context.run_id, {spec.stage: outcome.status})
         except Exception as exc:  # recorded per photo; the step fails below
             failed[key] = f"{type(exc).__name__}: {exc}"
             context.log.error(f"{key}: {spec.stage} failed: {failed[key]}")

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from assets_store.catalog import Catalog
 from dagster import ConfigurableResource
 from pydantic import Field
 
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops import photo_folder
+from ops.catalog_rows import photo_row
 from ops.optimise import ProgressFn
 from ops.pipeline import StageOutcome, photo_status, run_stage
 from ops.presets import PipelineConfig, preset
@@ -47,6 +49,11 @@ class MorpheusResource(ConfigurableResource):
     def run_stage(self, key: str, stage: str, progress: ProgressFn | None = None) -> StageOutcome:
         return run_stage(self.photo_path(key), self.store(), self.pipeline_config(), self.preset, key, stage,
                          progress=progress)
+
+    def record(self, key: str, run_id: str, statuses: dict[str, str], failure: str | None = None) -> None:
+        """Append this photo's catalog row (after its QA, or when a stage failed for good)."""
+        store = self.store()
+        Catalog(store.catalog_dir).append([photo_row(store, key, run_id, statuses, failure)])
 
     def status(self, keys: list[str]) -> dict[str, dict[str, str]]:
         """Stage status (fresh / stale / missing) per key whose photo is present; photos are hashed

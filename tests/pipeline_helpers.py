@@ -20,7 +20,7 @@ TINY_OVERRIDES = [
     "dmtet.resolution=40", "dmtet.max_grid=24", "dmtet.colour_fit_steps=40", "dmtet.colour_fit_points=2048",
     "texture.resolution=40", "texture.follow_plan=false",
     "bake.bake.texture_size=64", "bake.eval_resolution=64", "bake.turntable_views=4",
-    "qa.eval_resolution=64", "qa.turntable_views=4",
+    "qa.eval_resolution=64", "qa.turntable_views=4", "qa.turntable_resolution=64",
 ]
 
 
