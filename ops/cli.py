@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import importlib
 import importlib.metadata as md
 import platform
+import re
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
@@ -123,7 +125,57 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--until", default="qa", choices=["reference", "nerf_fit", "dmtet", "texture_refine",
                                                         "uv_bake", "qa"], help="stop after this stage")
     run.add_argument("--list-keys", action="store_true", help="print every overridable setting and exit")
+    rep = sub.add_parser("report", help="the run catalog as one self-contained HTML page")
+    rep.add_argument("--store", type=Path, help="the asset store (catalog at <store>/catalog/; relative paths in "
+                     "the catalog's rows are relative to it)")
+    rep.add_argument("--catalog", type=Path, help="the catalog folder (default: <store>/catalog/)")
+    rep.add_argument("--since", metavar="YYYY-MM-DD", help="only rows created on or after this UTC day")
+    rep.add_argument("--out", type=Path, required=True, help="the HTML file to write")
     return parser
+
+
+def parse_day(text: str) -> dt.date:
+    """A YYYY-MM-DD day, strictly (date.fromisoformat alone also takes 20240101 and week dates)."""
+    if not re.fullmatch(r"\d{4}-\d{2}-\d{2}", text):
+        raise ValueError(f"{text!r} is not a date in the form YYYY-MM-DD")
+    try:
+        return dt.date.fromisoformat(text)
+    except ValueError as exc:
+        raise ValueError(f"{text!r} is not a valid date: {exc}") from None
+
+
+def report_command(args: argparse.Namespace) -> int:
+    """Write the catalog report; exit 2 on bad arguments, 1 when the catalog cannot be read."""
+    from assets_store.catalog import Catalog, CatalogError
+    from ops.report import build_report, write_report
+
+    if args.store is None and args.catalog is None:
+        print("morpheus3d report: give --store DIR (or --catalog DIR)", file=sys.stderr)
+        return 2
+    since = None
+    if args.since is not None:
+        try:
+            since = parse_day(args.since)
+        except ValueError as exc:
+            print(f"morpheus3d report: --since {exc}", file=sys.stderr)
+            return 2
+    if args.store is not None and not args.store.is_dir():
+        print(f"morpheus3d report: --store {args.store}: no such folder", file=sys.stderr)
+        return 2
+    if args.catalog is not None and not args.catalog.is_dir():
+        # Named explicitly, a missing folder is a typo; a store without a catalog yet just has no runs.
+        print(f"morpheus3d report: --catalog {args.catalog}: no such folder", file=sys.stderr)
+        return 2
+    root = args.catalog if args.catalog is not None else args.store / "catalog"
+    base = args.store if args.store is not None else root.parent
+    try:
+        page = build_report(Catalog(root), since=since, base_dir=base)
+    except CatalogError as exc:
+        print(f"morpheus3d report: {exc}", file=sys.stderr)
+        return 1
+    write_report(args.out, page)
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -224,6 +276,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return prepare(args)
     if args.command == "run":
         return run_command(args)
+    if args.command == "report":
+        return report_command(args)
     parser.print_help(sys.stderr)
     return 2
 

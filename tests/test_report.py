@@ -1,0 +1,256 @@
+"""``morpheus3d report``: a self-contained HTML page over the run catalog, checked in headless Chromium.
+
+A store with a catalog of 12 synthetic rows (random metrics, 2 failed rows, real PNG previews, real Parquet run
+logs written by ``assets_store.runlog.write_runlog``; one log and one preview missing on purpose) is reported by
+the CLI; Chromium opens the page from a ``file://`` URL: every section is there, every image decodes, the
+failure reasons are shown, the worst-asset list is in order and catalog text is escaped. Also: an empty
+catalog renders, and bad arguments exit 2.
+
+Skips only when Chromium, chromedriver or selenium are missing (``make browser`` installs them).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib.util
+import io
+import math
+import os
+import random
+import re
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from assets_store.catalog import Catalog
+from assets_store.runlog import write_runlog
+from ops.cli import main
+from ops.report import SECTIONS, STAGE_ORDER, worst_order
+from tests.catalog_rows import LOGGED_STAGES, METRICS, synthetic_row
+
+CHROMIUM = Path(os.environ.get("MORPHEUS_CHROMIUM", "/usr/bin/chromium"))
+CHROMEDRIVER = Path(os.environ.get("MORPHEUS_CHROMEDRIVER", "/usr/bin/chromedriver"))
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--disable-dev-shm-usage")
+T0 = dt.datetime(2026, 5, 4, 9, 0, tzinfo=dt.timezone.utc)
+HOSTILE = "<script>alert('x')</script> & \"quotes\""
+
+
+def _missing_browser_parts() -> list[str]:
+    missing = [str(path) for path in (CHROMIUM, CHROMEDRIVER) if not os.access(path, os.X_OK)]
+    if importlib.util.find_spec("selenium") is None:
+        missing.append("the selenium package (pip install -e '.[dev]')")
+    return missing
+
+
+_MISSING = _missing_browser_parts()
+needs_browser = pytest.mark.skipif(
+    bool(_MISSING),
+    reason=f"headless Chromium unavailable, missing: {', '.join(_MISSING)}; "
+    "`make browser` installs the Debian packages chromium and chromium-driver",
+)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in CHROMIUM_FLAGS:
+        options.add_argument(flag)
+    with tempfile.TemporaryDirectory(prefix="morpheus-chromium-") as profile:
+        options.add_argument(f"--user-data-dir={profile}")
+        options.add_argument("--window-size=1400,1000")
+        driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+        try:
+            driver.set_page_load_timeout(60)
+            yield driver
+        finally:
+            driver.quit()
+
+
+def _png(rng: np.random.Generator, width: int, height: int) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (height, width, 3), dtype=np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _runlog(rng: random.Random, start_psnr: float, wall_s: float) -> list[dict]:
+    """A loop's log over most of its stage's wall time (the rest is set-up and export)."""
+    rows = []
+    for step in range(0, 60, 3):
+        row = {"step": step, "wall_s": 0.9 * wall_s * step / 57, "loss_rgb": rng.random(), "loss_mask": rng.random()}
+        if step % 6 == 0:  # evaluated every other logged step, as the loops do
+            row["ref_psnr"] = start_psnr + 8 * (1 - math.exp(-step / 20)) + rng.gauss(0, 0.2)
+        rows.append(row)
+    return rows
+
+
+def build_store(store: Path) -> list[dict]:
+    """12 rows of 11 photos (photo03 ran twice), 2 failed; previews and run logs under the store."""
+    rng, nrng = random.Random(7), np.random.default_rng(7)
+    rows = []
+    for i in range(12):
+        key = f"photo{min(i, 10):02d}" if i != 11 else "photo03"
+        failed = {4: "dmtet", 8: "texture_refine"}.get(i)
+        paths = {"preview": f"{key}/run{i}/turntable.png", "glb": f"{key}/run{i}/asset.glb"}
+        for stage in LOGGED_STAGES:
+            paths[stage] = f"{key}/run{i}/{stage}_runlog.parquet"
+        row = synthetic_row(rng, f"run{i:02d}", key, T0 + dt.timedelta(hours=5 * i), failed_at=failed, paths=paths)
+        (store / paths["preview"]).parent.mkdir(parents=True, exist_ok=True)
+        if not failed and i != 2:  # photo02's preview is missing: the page must say so, not show a broken image
+            (store / paths["preview"]).write_bytes(_png(nrng, 8 * 48, 48))
+        for stage in LOGGED_STAGES:
+            # A failed run logged the stages it ran, up to the failing one. One log is missing: that curve has
+            # a gap and the page a note.
+            if row[f"runlog_{stage}"] and (i, stage) != (5, "dmtet"):
+                write_runlog(store / paths[stage], _runlog(rng, 15 + 2 * LOGGED_STAGES.index(stage),
+                                                           row[f"{stage}_wall_s"]))
+        rows.append(row)
+    rows[6]["verdict"] = "fail"
+    rows[6]["reasons"] = HOSTILE  # catalog text must be escaped, never markup
+    rows[9]["metric_ref_psnr"] = 12.5  # clearly the worst by PSNR
+    rows[0]["metric_lpips"] = math.inf  # infinite values are counted, not drawn
+    rows[1]["metric_ref_psnr"] = 30  # an int in a float column: promoted on read
+    Catalog(store / "catalog").append(rows[:6])
+    Catalog(store / "catalog").append(rows[6:])  # two part files
+    return rows
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict], str]:
+    store = tmp_path_factory.mktemp("store")
+    rows = build_store(store)
+    out = store.parent / "report.html"
+    assert main(["report", "--store", str(store), "--out", str(out)]) == 0
+    return out, rows, out.read_text(encoding="utf-8")
+
+
+def test_stage_order_is_the_pipelines() -> None:
+    from ops.pipeline import STAGES
+
+    assert STAGE_ORDER == STAGES
+
+
+def test_the_page_is_self_contained_and_escaped(report: tuple[Path, list[dict], str]) -> None:
+    _, _, page = report
+    srcs = re.findall(r'\bsrc="([^"]*)"', page)
+    assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert not re.search(r"<(script|link)\b", page), "no scripts or external stylesheets"
+    assert "http://" not in page and "https://" not in page
+    assert "&lt;script&gt;alert(&#x27;x&#x27;)&lt;/script&gt;" in page
+    for sid, _ in SECTIONS:
+        assert f'<section id="{sid}">' in page
+
+
+@needs_browser
+def test_report_in_chromium(report: tuple[Path, list[dict], str], browser) -> None:
+    from selenium.webdriver.common.by import By
+
+    out, rows, _ = report
+    browser.get(out.resolve().as_uri())
+    for sid, title in SECTIONS:
+        section = browser.find_element(By.ID, sid)
+        assert section.find_element(By.TAG_NAME, "h2").text == title
+    assert browser.execute_script("return document.scripts.length") == 0, "escaped text became a script"
+
+    images = browser.execute_script(
+        "return Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth, i.naturalHeight])")
+    assert all(complete and w > 0 and h > 0 for _, complete, w, h in images), images
+    alts = [alt for alt, *_ in images]
+    metric_imgs = [a for a in alts if a.startswith("histogram of ")]
+    assert len(metric_imgs) == len(METRICS), "one histogram per metric_* column"
+    assert "reference PSNR against wall time" in alts
+    previews = browser.find_elements(By.CSS_SELECTOR, "#worst img.preview")
+    assert previews and all(p.get_property("naturalWidth") == 8 * 48 for p in previews)
+
+    summary = browser.find_element(By.ID, "summary").text
+    assert "failed 2" in summary and "ok 10" in summary
+    assert re.search(r"photos 11\b", summary) and re.search(r"runs 12\b", summary)
+    for stage in STAGE_ORDER:
+        assert stage in summary
+
+    curves = browser.find_element(By.ID, "curves").text
+    assert "photo05: dmtet log missing" in curves  # photo05's dmtet log was not written
+
+    failures = browser.find_element(By.ID, "failures")
+    failed = [r for r in rows if r["status"] == "failed"]
+    cells = [td.text for td in failures.find_elements(By.CSS_SELECTOR, "td")]
+    for row in failed:
+        assert row["failure_reason"] in cells
+        assert row["run_id"] in cells
+    assert len(failures.find_elements(By.CSS_SELECTOR, "tbody tr")) == 2
+
+    # The worst list: the newest finished run per photo, verdict fail first, then ascending PSNR.
+    items = browser.find_elements(By.CSS_SELECTOR, "#worst li.worst-asset")
+    got = [(li.get_attribute("data-verdict"), li.get_attribute("data-ref-psnr"), li.get_attribute("data-photo-key"))
+           for li in items]
+    newest: dict[str, dict] = {}
+    for row in rows:
+        if row["photo_key"] not in newest or row["created_at"] > newest[row["photo_key"]]["created_at"]:
+            newest[row["photo_key"]] = row
+    want = worst_order([r for r in newest.values() if r["status"] == "ok"])
+    assert [k for _, _, k in got] == [r["photo_key"] for r in want]
+    fails = [v == "fail" for v, _, _ in got]
+    assert fails == sorted(fails, reverse=True), "verdict fail first"
+    for group in (True, False):
+        psnrs = [float(p) for (v, p, _), f in zip(got, fails, strict=True) if f == group]
+        assert psnrs == sorted(psnrs), "ascending PSNR within the fail / not-fail groups"
+    assert any(p == "12.5" for _, p, _ in got)
+    photo02 = next(li for li in items if li.get_attribute("data-photo-key") == "photo02")
+    assert "preview unreadable" in photo02.text  # missing preview: said, not a broken image
+    assert HOSTILE in browser.find_element(By.ID, "worst").text  # shown as text
+
+
+@needs_browser
+def test_an_empty_catalog_renders_a_page_saying_so(tmp_path: Path, browser) -> None:
+    from selenium.webdriver.common.by import By
+
+    store = tmp_path / "store"
+    store.mkdir()
+    out = tmp_path / "empty.html"
+    assert main(["report", "--store", str(store), "--since", "2026-01-01", "--out", str(out)]) == 0
+    browser.get(out.resolve().as_uri())
+    assert "holds no rows since 2026-01-01" in browser.find_element(By.ID, "summary").text
+    for sid, _ in SECTIONS:
+        assert browser.find_element(By.ID, sid)
+    assert browser.execute_script("return document.images.length") == 0
+
+
+def test_since_limits_the_rows(tmp_path: Path) -> None:
+    store = tmp_path / "store"
+    store.mkdir()
+    rows = build_store(store)
+    out = tmp_path / "recent.html"
+    cut = T0 + dt.timedelta(hours=5 * 8)  # rows 8.. are on or after this day
+    assert main(["report", "--catalog", str(store / "catalog"), "--store", str(store),
+                 "--since", cut.date().isoformat(), "--out", str(out)]) == 0
+    expected = sum(1 for r in rows if r["created_at"].date() >= cut.date())
+    page = out.read_text()
+    assert re.search(rf"<td>rows \(a photo in a run\)</td><td>{expected}</td>", page)
+
+
+@pytest.mark.parametrize("since", ["yesterday", "2026-13-01", "20260101", "2026-02-30"])
+def test_a_bad_since_exits_2_with_a_message(tmp_path: Path, capsys: pytest.CaptureFixture[str], since: str) -> None:
+    out = tmp_path / "r.html"
+    assert main(["report", "--store", str(tmp_path), "--since", since, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--since" in err and repr(since) in err
+    assert not out.exists()
+
+
+def test_missing_store_or_catalog_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "r.html"
+    assert main(["report", "--out", str(out)]) == 2
+    assert main(["report", "--store", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert main(["report", "--catalog", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "give --store" in err and "no such folder" in err
+    assert not out.exists()
