@@ -32,6 +32,7 @@ DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/dagster_home DAGSTER_SCHEDULE_GRPC_TIMEOUT
 # minutes on a CPU); prints where the GLBs and QA reports are. `make dagster` then shows the runs.
 demo: $(STAMP)
 	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster materialize
+	$(VENV)/bin/morpheus3d report --store $${MORPHEUS_STORE:-outputs/demo} --out $${MORPHEUS_STORE:-outputs/demo}/report.html
 
 # The Dagster UI and daemon (sensor, nightly schedule, backfills) on http://127.0.0.1:3000.
 dagster: $(STAMP)

@@ -14,7 +14,6 @@ from datetime import datetime, timezone
 from typing import Any
 
 from assets_store.catalog import Catalog
-
 from assets_store.manifest import Manifest
 from assets_store.store import Store
 from ops.pipeline import STAGES, PhotoOutcome

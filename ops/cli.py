@@ -147,6 +147,7 @@ def parse_day(text: str) -> dt.date:
 def report_command(args: argparse.Namespace) -> int:
     """Write the catalog report; exit 2 on bad arguments, 1 when the catalog cannot be read."""
     from assets_store.catalog import Catalog, CatalogError
+    from assets_store.store import Store
     from ops.report import build_report, write_report
 
     if args.store is None and args.catalog is None:
@@ -166,7 +167,7 @@ def report_command(args: argparse.Namespace) -> int:
         # Named explicitly, a missing folder is a typo; a store without a catalog yet just has no runs.
         print(f"morpheus3d report: --catalog {args.catalog}: no such folder", file=sys.stderr)
         return 2
-    root = args.catalog if args.catalog is not None else args.store / "catalog"
+    root = args.catalog if args.catalog is not None else Store(args.store).catalog_dir
     base = args.store if args.store is not None else root.parent
     try:
         page = build_report(Catalog(root), since=since, base_dir=base)

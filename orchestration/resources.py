@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from assets_store.catalog import Catalog
 from dagster import ConfigurableResource
 from pydantic import Field
 
+from assets_store.catalog import Catalog
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops import photo_folder

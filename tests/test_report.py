@@ -28,6 +28,7 @@ from PIL import Image
 
 from assets_store.catalog import Catalog
 from assets_store.runlog import write_runlog
+from assets_store.store import Store
 from ops.cli import main
 from ops.report import SECTIONS, STAGE_ORDER, worst_order
 from tests.catalog_rows import LOGGED_STAGES, METRICS, synthetic_row
@@ -119,8 +120,8 @@ def build_store(store: Path) -> list[dict]:
     rows[9]["metric_ref_psnr"] = 12.5  # clearly the worst by PSNR
     rows[0]["metric_lpips"] = math.inf  # infinite values are counted, not drawn
     rows[1]["metric_ref_psnr"] = 30  # an int in a float column: promoted on read
-    Catalog(store / "catalog").append(rows[:6])
-    Catalog(store / "catalog").append(rows[6:])  # two part files
+    Catalog(Store(store).catalog_dir).append(rows[:6])
+    Catalog(Store(store).catalog_dir).append(rows[6:])  # two part files
     return rows
 
 
@@ -230,7 +231,7 @@ def test_since_limits_the_rows(tmp_path: Path) -> None:
     rows = build_store(store)
     out = tmp_path / "recent.html"
     cut = T0 + dt.timedelta(hours=5 * 8)  # rows 8.. are on or after this day
-    assert main(["report", "--catalog", str(store / "catalog"), "--store", str(store),
+    assert main(["report", "--catalog", str(Store(store).catalog_dir), "--store", str(store),
                  "--since", cut.date().isoformat(), "--out", str(out)]) == 0
     expected = sum(1 for r in rows if r["created_at"].date() >= cut.date())
     page = out.read_text()
@@ -254,3 +255,41 @@ def test_missing_store_or_catalog_exits_2(tmp_path: Path, capsys: pytest.Capture
     err = capsys.readouterr().err
     assert "give --store" in err and "no such folder" in err
     assert not out.exists()
+
+
+@needs_browser
+def test_qa_on_a_bundled_photo_then_the_report_in_chromium(tmp_path: Path, browser) -> None:
+    """The real path: `morpheus3d run` on a bundled photo (tiny draft) writes the QA stage and a
+    catalog row; `morpheus3d report` turns the store into a page that renders in Chromium."""
+    import json
+
+    from selenium.webdriver.common.by import By
+
+    from ops.qa import QA_FILE, QA_TURNTABLE_GIF
+    from tests.pipeline_helpers import PHOTOS, cli_overrides, tiny_config
+
+    store = tmp_path / "store"
+    assert main(["run", str(PHOTOS / "mug.jpg"), "--out", str(store), "--preset", "draft",
+                 *cli_overrides(tiny_config())]) in (0, 1)
+    qa = json.loads((Store(store).stage_dir("mug.jpg", "qa") / QA_FILE).read_text())
+    for name in ("ref_psnr", "psnr_in", "ssim", "ssim_in", "mask_iou", "hf_ratio", "colour_deviation",
+                 "watertight", "euler_number", "uv_coverage", "texel_density", "seam_leakage"):
+        assert name in qa["metrics"], name
+    assert all(w["status"] == "skipped" and w["detail"].startswith("skipped: weights missing (expected files ")
+               for w in qa["weighted"].values()) and set(qa["weighted"]) == {"lpips", "clip_similarity",
+                                                                             "clipiqa", "maniqa"}
+    gif = Image.open(Store(store).stage_dir("mug.jpg", "qa") / QA_TURNTABLE_GIF)
+    assert gif.n_frames == tiny_config().qa.turntable_views
+    rows = Catalog(Store(store).catalog_dir).read().to_pylist()
+    assert len(rows) == 1 and rows[0]["photo_key"] == "mug.jpg" and rows[0]["verdict"] == qa["verdict"]
+    assert rows[0]["metric_ref_psnr"] == pytest.approx(qa["metrics"]["ref_psnr"])
+
+    out = tmp_path / "report.html"
+    assert main(["report", "--store", str(store), "--out", str(out)]) == 0
+    browser.get(out.resolve().as_uri())
+    for sid, title in SECTIONS:
+        assert browser.find_element(By.ID, sid).find_element(By.TAG_NAME, "h2").text == title
+    images = browser.execute_script("return Array.from(document.images).map(i => [i.alt, i.naturalWidth])")
+    assert images and all(w > 0 for _, w in images), images
+    assert "reference PSNR against wall time" in [alt for alt, _ in images]
+    assert "mug.jpg" in browser.find_element(By.ID, "worst").text
