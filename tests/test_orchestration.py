@@ -19,6 +19,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
 from ops.qa import CHECKS, read_report
@@ -85,6 +86,9 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
     verdict = next(e for e in evaluations if e.check_name == "verdict")
     assert verdict.passed == (report.verdict != "fail")
     assert verdict.description
+    rows = [r for r in Catalog(Store(root / "store").catalog_dir).read().to_pylist() if r["run_id"] == result.run_id]
+    assert len(rows) == 1 and rows[0]["photo_key"] == KEY and rows[0]["verdict"] == report.verdict
+    assert rows[0]["status"] == "ok" and rows[0]["qa_status"] == "ran" and rows[0]["nerf_fit_device"] == "cpu"
 
 
 def test_rerun_is_all_cache_hits(deployment) -> None:
@@ -285,6 +289,8 @@ def test_a_removed_photo_fails_at_once_without_retries(tmp_path: Path) -> None:
         message = failure.event_specific_data.error.to_string()
         assert "gone.jpg" in message and str(tmp_path / "photos") in message and "UnknownPhotoError" in message
         assert not (tmp_path / "store" / "gone.jpg" / "reference").exists()
+        (row,) = Catalog(Store(tmp_path / "store").catalog_dir).read().to_pylist()
+        assert row["status"] == "failed" and "UnknownPhotoError" in row["failure_reason"]
 
 
 def test_multiprocess_executor_runs_a_stage_in_a_child_process(tmp_path: Path,
