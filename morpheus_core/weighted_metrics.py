@@ -92,6 +92,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from morpheus_core.devices import pick_device
 from morpheus_core.imaging import batch_to_uint8_hwc
 from morpheus_core.lpips import LPIPS, LPIPS_FILE
 from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root
@@ -219,15 +220,6 @@ def missing_detail(status: ModelStatus) -> str:
             f"Weights are never downloaded; to provide them: {how_to}")
 
 
-def _torch_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {name!r} requested but CUDA is not available; use cpu or auto")
-    return dev
-
-
 # -- inputs -------------------------------------------------------------------------------------------
 
 
@@ -337,7 +329,7 @@ class WeightedMetrics:
 
     def __init__(self, cfg: WeightedMetricsConfig | None = None) -> None:
         self.cfg = cfg or WeightedMetricsConfig()
-        self.device = _torch_device(self.cfg.device)
+        self.device = pick_device(self.cfg.device)
         self._lpips: dict[Path, LPIPS] = {}
         self._clip: dict[Path, _Clip] = {}
         self._maniqa: dict[Path, ManiqaOnnx] = {}

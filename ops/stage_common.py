@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from assets_store.atomic import atomic_write, atomic_write_bytes
 from assets_store.runlog import write_runlog
 from morpheus_core.cameras import Cameras, OrbitConfig, reference_camera, sample_orbit, turntable
+from morpheus_core.devices import pick_device  # noqa: F401 - the stages' import path
 from morpheus_core.metrics import psnr
 from morpheus_core.render.output import RenderOutput
 from ops.config_tree import from_dict, to_dict
@@ -27,16 +28,6 @@ from ops.prior_suite import read_rgba
 
 RUNLOG_FILE = "runlog.parquet"
 PREVIEW_FILE = "preview.png"
-
-
-def pick_device(name: str) -> torch.device:
-    """``auto`` → CUDA when available, else CPU; an explicit CUDA request without CUDA fails."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device {name!r} requested but CUDA is not available; use device=cpu or auto")
-    return dev
 
 
 @dataclass(frozen=True)

@@ -12,13 +12,10 @@ Skips only when Chromium, chromedriver or selenium are missing (``make browser``
 from __future__ import annotations
 
 import datetime as dt
-import importlib.util
 import io
 import math
-import os
 import random
 import re
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,50 +28,17 @@ from assets_store.runlog import write_runlog
 from assets_store.store import Store
 from ops.cli import main
 from ops.report import SECTIONS, STAGE_ORDER, worst_order
+from tests.browser import chromium, needs_browser
 from tests.catalog_rows import LOGGED_STAGES, METRICS, synthetic_row
 
-CHROMIUM = Path(os.environ.get("MORPHEUS_CHROMIUM", "/usr/bin/chromium"))
-CHROMEDRIVER = Path(os.environ.get("MORPHEUS_CHROMEDRIVER", "/usr/bin/chromedriver"))
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--disable-dev-shm-usage")
 T0 = dt.datetime(2026, 5, 4, 9, 0, tzinfo=dt.timezone.utc)
 HOSTILE = "<script>alert('x')</script> & \"quotes\""
 
 
-def _missing_browser_parts() -> list[str]:
-    missing = [str(path) for path in (CHROMIUM, CHROMEDRIVER) if not os.access(path, os.X_OK)]
-    if importlib.util.find_spec("selenium") is None:
-        missing.append("the selenium package (pip install -e '.[dev]')")
-    return missing
-
-
-_MISSING = _missing_browser_parts()
-needs_browser = pytest.mark.skipif(
-    bool(_MISSING),
-    reason=f"headless Chromium unavailable, missing: {', '.join(_MISSING)}; "
-    "`make browser` installs the Debian packages chromium and chromium-driver",
-)
-
-
 @pytest.fixture(scope="module")
 def browser() -> Iterator:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for flag in CHROMIUM_FLAGS:
-        options.add_argument(flag)
-    with tempfile.TemporaryDirectory(prefix="morpheus-chromium-") as profile:
-        options.add_argument(f"--user-data-dir={profile}")
-        options.add_argument("--window-size=1400,1000")
-        driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-        try:
-            driver.set_page_load_timeout(60)
-            yield driver
-        finally:
-            driver.quit()
+    with chromium() as driver:
+        yield driver
 
 
 def _png(rng: np.random.Generator, width: int, height: int) -> bytes:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import importlib.util
 import io
 import json
 import math
@@ -36,7 +35,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 import urllib.parse
 import urllib.request
@@ -46,9 +44,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.browser import chromium, needs_browser
+
 REPO = Path(__file__).resolve().parents[1]
-CHROMIUM = Path(os.environ.get("MORPHEUS_CHROMIUM", "/usr/bin/chromium"))
-CHROMEDRIVER = Path(os.environ.get("MORPHEUS_CHROMEDRIVER", "/usr/bin/chromedriver"))
 SCREENSHOT = REPO / "benchmarks" / "results" / "dagster_asset_graph.png"
 PREVIEW_SCREENSHOT = REPO / "benchmarks" / "results" / "dagster_asset_preview.png"
 # The photo materialised (tiny configuration) for the preview test, the asset whose page is opened, and checks
@@ -70,32 +68,9 @@ RENDER_TIMEOUT_S = 60.0  # asset graph laid out and drawn
 # An edge's ends are on (start) or a few units outside (end, under the arrow) its nodes' boxes; the gap between
 # two ranks of the layout is ~60 units.
 ENDPOINT_TOLERANCE = 25.0
-CHROMIUM_FLAGS = (
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-dev-shm-usage",
-)
 
 
-def _missing_browser_parts() -> list[str]:
-    missing = [str(path) for path in (CHROMIUM, CHROMEDRIVER) if not os.access(path, os.X_OK)]
-    if importlib.util.find_spec("selenium") is None:
-        missing.append("the selenium package (pip install -e '.[dev]')")
-    return missing
-
-
-_MISSING = _missing_browser_parts()
-pytestmark = pytest.mark.skipif(
-    bool(_MISSING),
-    reason=f"headless Chromium unavailable, missing: {', '.join(_MISSING)}; "
-    "`make browser` installs the Debian packages chromium and chromium-driver",
-)
+pytestmark = needs_browser
 
 
 # ---------------------------------------------------------------- expected graph, from the Definitions object
@@ -243,25 +218,8 @@ def webserver(tmp_path: Path) -> Iterator[str]:
 
 @pytest.fixture
 def browser() -> Iterator:
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for flag in CHROMIUM_FLAGS:
-        options.add_argument(flag)
-    with tempfile.TemporaryDirectory(prefix="morpheus-chromium-") as profile:
-        options.add_argument(f"--user-data-dir={profile}")
-        options.add_argument(f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}")
-        driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-        try:
-            driver.set_page_load_timeout(60)
-            # --window-size is the outer size: grow the window so that the page itself gets VIEWPORT.
-            dw, dh = driver.execute_script("return [outerWidth - innerWidth, outerHeight - innerHeight]")
-            driver.set_window_size(VIEWPORT[0] + dw, VIEWPORT[1] + dh)
-            yield driver
-        finally:
-            driver.quit()
+    with chromium(VIEWPORT) as driver:
+        yield driver
 
 
 # The graph's <svg> (the one holding <foreignObject> nodes): each node's box in SVG units and its own texts (an
