@@ -101,11 +101,11 @@ def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: 
     try:
         return morpheus.run_stage(key, stage, _logging_progress(context))
     except PERMANENT as exc:
-        morpheus.record(key, context.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
+        morpheus.record(key, context.run.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
         raise dg.Failure(description=f"{key}: {type(exc).__name__}: {exc}", allow_retries=False) from exc
     except Exception as exc:
         if context.retry_number >= max_retries:  # the last attempt: the catalog learns why this photo failed
-            morpheus.record(key, context.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
+            morpheus.record(key, context.run.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
         raise
 
 
@@ -127,7 +127,7 @@ def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.A
         if len(keys) == 1:
             outcome = _run_one(context, morpheus, spec.stage, keys[0], settings.max_retries)
             if spec.stage == "qa":
-                morpheus.record(keys[0], context.run_id, {spec.stage: outcome.status})
+                morpheus.record(keys[0], context.run.run_id, {spec.stage: outcome.status})
             checks = _checks(outcome, morpheus, keys[0])
             assert outcome.manifest is not None
             yield dg.MaterializeResult(
@@ -153,7 +153,7 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
             outcome = _run_one(context, morpheus, spec.stage, key, max_retries)
             done[key] = (outcome, _checks(outcome, morpheus, key))
             if spec.stage == "qa":
-                morpheus.record(key, context.run_id, {spec.stage: outcome.status})
+                morpheus.record(key, context.run.run_id, {spec.stage: outcome.status})
         except Exception as exc:  # recorded per photo; the step fails below
             failed[key] = f"{type(exc).__name__}: {exc}"
             context.log.error(f"{key}: {spec.stage} failed: {failed[key]}")
