@@ -36,7 +36,6 @@ import datetime as dt
 import fcntl
 import json
 import logging
-import numbers
 import os
 import re
 import secrets
@@ -54,13 +53,13 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from assets_store.atomic import atomic_write
+from assets_store.columns import TIMESTAMP, typed_table
 from assets_store.fsutil import fsync_dir
 
 log = logging.getLogger(__name__)
 
 CREATED_AT = "created_at"
 PHOTO_KEY = "photo_key"
-TIMESTAMP = pa.timestamp("us", tz="UTC")
 LOCK_FILE = ".compact.lock"
 PART_PREFIX = "part"
 COMPACT_PREFIX = "compact"
@@ -118,60 +117,9 @@ def _utc(value: Any, where: str) -> dt.datetime:
     return value.astimezone(dt.timezone.utc)
 
 
-def _is_bool(value: Any) -> bool:
-    return isinstance(value, (bool, np.bool_))
-
-
-def _column_type(name: str, values: list[Any]) -> pa.DataType | None:
-    present = [v for v in values if v is not None]
-    if not present:
-        return pa.null()  # unifies with any type when read together with files that have values
-    if all(_is_bool(v) for v in present):
-        return pa.bool_()
-    if any(_is_bool(v) for v in present):
-        raise ValueError(f"catalog column {name!r} mixes booleans with other values")
-    if all(isinstance(v, numbers.Integral) for v in present):
-        return pa.int64()
-    if all(isinstance(v, numbers.Real) for v in present):
-        return pa.float64()
-    if all(isinstance(v, str) for v in present):
-        return pa.string()
-    if all(isinstance(v, dt.datetime) for v in present):
-        for v in present:
-            _utc(v, f"column {name!r}")
-        return TIMESTAMP
-    if any(isinstance(v, (str, numbers.Real, dt.datetime)) for v in present):
-        raise ValueError(f"catalog column {name!r} mixes strings, numbers, times or other values")
-    return None  # nested values (lists, dicts): let pyarrow infer
-
-
-def _convert(value: Any, dtype: pa.DataType | None) -> Any:
-    if value is None:
-        return None
-    if dtype == pa.bool_():
-        return bool(value)
-    if dtype == pa.int64():
-        return int(value)
-    if dtype == pa.float64():
-        return float(value)
-    if dtype == TIMESTAMP:
-        return value.astimezone(dt.timezone.utc)
-    return value
-
-
 def rows_table(rows: Sequence[Mapping[str, Any]]) -> pa.Table:
     """The rows as a table: columns in first-seen order, nulls where a row lacks a key, explicit types."""
-    names: dict[str, None] = {}  # an ordered set
-    for row in rows:
-        names.update(dict.fromkeys(row))
-    columns = {}
-    for name in names:
-        if not isinstance(name, str):
-            raise ValueError(f"catalog column names must be strings, got {name!r}")
-        values = [row.get(name) for row in rows]
-        dtype = _column_type(name, values)
-        columns[name] = pa.array([_convert(v, dtype) for v in values], type=dtype)
-    return pa.table(columns)
+    return typed_table(rows, "catalog")
 
 
 # ---------------------------------------------------------------------------------------------- file naming

@@ -19,6 +19,7 @@ PARTIAL_SUFFIXES = (".part", ".partial", ".crdownload", ".download", ".tmp", ".t
 _JPEG_END = b"\xff\xd9"
 _PNG_END = b"IEND\xaeB`\x82"
 _TAIL = 64  # JPEG writers may pad after the end-of-image marker
+_LAST_SCAN: dict[str, tuple[int, dict[str, str]]] = {}  # resolved folder → (mtime_ns, key → name)
 
 
 def is_photo_name(name: str) -> bool:
@@ -30,11 +31,23 @@ def is_photo_name(name: str) -> bool:
 def scan(folder: Path) -> dict[str, str]:
     """Photo key → file name for every photo-named regular file directly in ``folder``."""
     folder = Path(folder)
-    if not folder.is_dir():
+    try:
+        stamp = (str(folder.resolve()), folder.stat().st_mtime_ns)
+    except OSError:
+        stamp = None
+    if stamp is None or not folder.is_dir():
         raise FileNotFoundError(f"photo folder {folder} does not exist; create it or point MORPHEUS_PHOTO_DIR at one")
+    # Every stage of every photo resolves its key through this; a folder's listing only changes
+    # when its mtime does (an entry added, removed or renamed), so reuse the last listing until then —
+    # unless the mtime is recent: on filesystems with coarse timestamps a second change could share it.
+    cached = _LAST_SCAN.get(stamp[0])
+    if cached is not None and cached[0] == stamp[1] and time.time_ns() - stamp[1] > 2_000_000_000:
+        return dict(cached[1])
     with os.scandir(folder) as it:
         names = [e.name for e in it if is_photo_name(e.name) and e.is_file()]
-    return {key: name for name, key in assign_keys(names).items()}
+    keys = {key: name for name, key in assign_keys(names).items()}
+    _LAST_SCAN[stamp[0]] = (stamp[1], keys)
+    return dict(keys)
 
 
 @dataclass(frozen=True)
