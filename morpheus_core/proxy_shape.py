@@ -52,6 +52,8 @@ _SDF_CHUNK = 1 << 18
 # A rescued vertex is moved at most this fraction of DMTet's deformation range (tanh never
 # reaches 1, and staying below it keeps the moved vertex's tets from flattening).
 _MAX_SNAP = 0.99
+# A component counts as meshed only if some grid vertex lies this many cells deep inside it.
+_SHALLOW_CELLS = 0.25
 # The 7 positive lattice steps along the tet grid's edges (their negatives are the other 7).
 _EDGE_STEPS = torch.from_numpy(EDGE_OFFSETS)
 # Projections with clip w below this are behind (or at) the reference camera: not part of the shape.
@@ -317,13 +319,17 @@ class InflatedProxy:
         """
         n_labels, labels = cv2.connectedComponents(self._mask_np.astype(np.uint8), connectivity=8)
         grid, boundary = dmtet.grid_vertices, dmtet.boundary
-        inside = (values < 0) & ~boundary
+
+        def label_of(points: Tensor) -> np.ndarray:
+            uv = self.pixel_coordinates(points).floor().long().cpu().numpy()
+            return labels[np.clip(uv[:, 1], 0, self.height - 1), np.clip(uv[:, 0], 0, self.width - 1)]
+
+        # A vertex barely inside (a speck whose edge grazes it) gives a blob far smaller than the
+        # speck, too small to show in a render: such a component counts as uncovered and is seeded.
+        deep = (values < -_SHALLOW_CELLS * dmtet.config.cell_size) & ~boundary
         covered = np.zeros(n_labels, dtype=bool)
-        if bool(inside.any()):
-            uv = self.pixel_coordinates(grid[inside]).floor().long().cpu().numpy()
-            cols = np.clip(uv[:, 0], 0, self.width - 1)
-            rows = np.clip(uv[:, 1], 0, self.height - 1)
-            covered[np.unique(labels[rows, cols])] = True
+        if bool(deep.any()):
+            covered[np.unique(label_of(grid[deep]))] = True
         covered[0] = True  # background
         if covered.all():
             return
@@ -364,8 +370,10 @@ class InflatedProxy:
                 if bool((ijk <= 0).any() or (ijk >= res).any()):
                     continue  # on or beyond the capped boundary: nothing can be inside there
                 centre = index(ijk)
-                if bool(values[centre] < 0) or not bool(self.sdf(target[None])[0] < 0):
-                    continue  # already inside another solid (moving it would dent that), or no depth here
+                if not bool(self.sdf(target[None])[0] < 0):
+                    continue  # no depth here
+                if bool(values[centre] < 0) and label_of(grid[centre][None])[0] != label:
+                    continue  # inside another solid: moving it would dent that
                 members = index(ijk + star)
                 if bool((values[index(ijk + ring2)] < 0).any() or moved[members].any()):
                     members = centre[None]
