@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install browser demo dagster demo-frequency test lint doctor clean
+.PHONY: install browser demo dagster demo-frequency bench-quality test lint doctor clean
 
 install: $(STAMP)
 
@@ -40,6 +40,11 @@ dagster: $(STAMP)
 
 demo-frequency: $(STAMP)
 	$(PY) benchmarks/frequency_demo.py --out outputs/frequency_demo
+
+# Synthetic scenes with ground truth: ablations, error against time, stability (CPU size, about an
+# hour on 2 cores). BENCH_ARGS="--size large" for more steps and views; "--device cuda" on a GPU.
+bench-quality: $(STAMP)
+	$(PY) -m benchmarks.quality $(BENCH_ARGS)
 
 # Headless Chromium for tests/test_ui.py (Debian packages), installed when missing and apt-get is there.
 # Never fails the make run: without Chromium that test skips and says why.

@@ -4,6 +4,7 @@
 #   bash benchmarks/gpu_session.sh [quick|priors|stages]   results -> benchmarks/results/*_h200.*, logs -> $OUT
 # quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
 # priors: the CUDA prior tests and the full prior benchmark only.
+# quality: benchmarks/quality.py at the gpu size (QUALITY_ARGS picks parts and scenes), results -> $OUT.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 set -uo pipefail
@@ -23,6 +24,12 @@ if [ "$mode" = stages ]; then
       --store outputs/gpu_ref > "$out/stage_speed_$p.log" 2>&1
   done
   tar czf "$out/results_h200.tgz" benchmarks/results/stage_speed_*h200*
+  exit 0
+fi
+if [ "$mode" = quality ]; then  # QUALITY_ARGS, e.g. "--parts error_time --scenes mug"
+  timeout ${QUALITY_TIMEOUT:-560} python -m benchmarks.quality --size gpu --device cuda --results "$out" \
+    ${QUALITY_ARGS:-} > "$out/quality.log" 2>&1
+  echo "quality exit $?" >> "$out/quality.log"
   exit 0
 fi
 if [ "$mode" = priors ]; then

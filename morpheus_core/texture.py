@@ -181,7 +181,8 @@ def cluster_decimate(mesh: Mesh, max_faces: int) -> Mesh:
         else:
             hi_cells = mid
     v, f = best
-    return Mesh(torch.from_numpy(v).to(mesh.vertices), torch.from_numpy(f).to(torch.int64))
+    faces_out = torch.from_numpy(f).to(device=mesh.faces.device, dtype=torch.int64)
+    return Mesh(torch.from_numpy(v).to(mesh.vertices), faces_out)
 
 
 def _enforce_face_limit(mesh: Mesh, config: BakeConfig) -> Mesh:

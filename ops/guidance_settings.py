@@ -76,7 +76,11 @@ class GuidanceSettings:
         return (self.k3d > 0) if role == PRIOR_3D else (self.use_2d and self.k2d > 0 and self.r < 1.0)
 
     def build(self) -> GuidanceConfig:
-        terms = [term_3d(self.mode_3d, self.k3d, self.t_range(), self.cfg_3d, self.cfg_lora)]
-        if self.use_2d:
+        # An inactive term (k = 0, or r = 1 for the 2D prior) adds exactly nothing, and ``vsd_roles``
+        # gives it no LoRA: the 2D term is left out (no wasted prior forward); the 3D term stays so
+        # the config is never empty, in SDS mode when inactive (VSD would ask for a missing LoRA).
+        mode_3d = self.mode_3d if self.is_active(PRIOR_3D) else "sds"
+        terms = [term_3d(mode_3d, self.k3d, self.t_range(), self.cfg_3d, self.cfg_lora)]
+        if self.is_active(PRIOR_2D):
             terms.append(term_2d(self.mode_2d, self.k2d, self.r, self.t_range(), self.cfg_2d, self.cfg_lora))
         return GuidanceConfig(tuple(terms), self.lambda_c, self.sigma, self.grad_clip)

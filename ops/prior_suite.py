@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -29,7 +29,7 @@ from morpheus_core.cameras import Cameras
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras
-from morpheus_core.priors.proxy import CurrentRenderCounterpart, ProxyPrior
+from morpheus_core.priors.proxy import Corruption, CurrentRenderCounterpart, ProxyPrior
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
 from morpheus_core.proxy_shape import InflatedProxy, InflationConfig
@@ -111,23 +111,30 @@ class PriorSuite(ABC):
 
 
 class ProxySuite(PriorSuite):
+    """Render-target priors: each role is pulled towards ``target_images(cameras, h, w)`` (B×3×H×W),
+    through that role's corruption if it has one. The weight-free default targets the photo's inflated
+    silhouette; the quality benchmark's oracle targets a known object, low-passed for ``3d`` and
+    colour-shifted in its low band for ``2d`` (DESIGN.md §3)."""
+
     weight_free = True
 
-    def __init__(self, proxy: InflatedProxy, roles: tuple[str, ...], vsd_roles: tuple[str, ...]) -> None:
-        self.proxy = proxy
+    def __init__(self, target_images: Callable[[Cameras, int, int], Tensor], roles: tuple[str, ...],
+                 vsd_roles: tuple[str, ...], description: str,
+                 corruptions: Mapping[str, Corruption] | None = None) -> None:
+        self.target_images = target_images
         self.roles = roles
-        schedule = NoiseSchedule()
-        self.prior = ProxyPrior(lambda c: c.target, schedule)
-        self.counterpart = CurrentRenderCounterpart(lambda c: c.current, schedule)
         self.vsd_roles = vsd_roles
-        self.description = (f"{WEIGHT_FREE}: renders of the photo's inflated silhouette, photo on the front and "
-                            "mirrored on the back — diffusion weights are not installed (see `morpheus3d doctor`)")
+        self.description = description
+        schedule = NoiseSchedule()
+        corruptions = corruptions or {}
+        self.priors = {role: ProxyPrior(lambda c: c.target, schedule, corruptions.get(role)) for role in roles}
+        self.counterpart = CurrentRenderCounterpart(lambda c: c.current, schedule)
 
     def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
         h, w = renders.shape[-2:]
-        target = self.proxy.target_images(cameras, h, w).to(device=renders.device, dtype=renders.dtype)
+        target = self.target_images(cameras, h, w).to(device=renders.device, dtype=renders.dtype)
         cond = ProxyCondition(target, renders.detach())
-        return {role: PriorBinding(self.prior, self.counterpart if role in self.vsd_roles else None, cond)
+        return {role: PriorBinding(self.priors[role], self.counterpart if role in self.vsd_roles else None, cond)
                 for role in self.roles}
 
 
@@ -229,6 +236,8 @@ def build_suite(cfg: PriorsConfig, device: torch.device, reference_dir: Path, ob
         return RealSuite(cfg, device, object_id, read_rgba(reference_dir, 256), roles, vsd_roles)
     rgba = read_rgba(reference_dir, 256).permute(1, 2, 0).to(device)
     proxy = InflatedProxy(rgba, InflationConfig(thickness=cfg.proxy_thickness, grid_resolution=cfg.proxy_grid))
-    suite = ProxySuite(proxy, roles, vsd_roles)
+    description = (f"{WEIGHT_FREE}: renders of the photo's inflated silhouette, photo on the front and mirrored "
+                   "on the back — diffusion weights are not installed (see `morpheus3d doctor`)")
+    suite = ProxySuite(proxy.target_images, roles, vsd_roles, description)
     log.warning("NO DIFFUSION WEIGHTS: using the %s", suite.description)
     return suite

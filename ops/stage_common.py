@@ -56,7 +56,8 @@ def mask_loss(opacity: Tensor, mask: Tensor) -> Tensor:
     """BCE of the reference-view opacity (B×1×H×W) against the mask, summed over pixels like the
     paper's reference term ‖x0 − y‖², so weights keep their meaning across resolutions."""
     o = opacity.float().clamp(1e-5, 1.0 - 1e-5)
-    return F.binary_cross_entropy(o, mask.float().expand_as(o), reduction="sum") / o.shape[0]
+    with torch.autocast(o.device.type, enabled=False):  # BCE refuses to autocast: it is float32 here
+        return F.binary_cross_entropy(o, mask.float().expand_as(o), reduction="sum") / o.shape[0]
 
 
 def pixels(resolution: int) -> float:

@@ -55,3 +55,17 @@ def test_guidance_on_cuda_matches_cpu(tf32_on) -> None:
         grads.append((xd.grad.cpu(), ref_render.grad.cpu()))
     for a, b in zip(*grads, strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-7)
+
+
+def test_decimating_a_cuda_mesh_keeps_it_on_the_gpu() -> None:
+    """uv_bake decimates meshes over the face budget; on CUDA its faces once came back on the CPU."""
+    import trimesh
+
+    from morpheus_core.geometry.mesh import Mesh
+    from morpheus_core.texture import cluster_decimate
+
+    s = trimesh.creation.icosphere(subdivisions=5)
+    mesh = Mesh(torch.tensor(s.vertices, dtype=torch.float32).cuda(), torch.tensor(s.faces).cuda())
+    small = cluster_decimate(mesh, 2000)
+    assert small.vertices.is_cuda and small.faces.is_cuda and 0 < small.num_faces <= 2000
+    assert small.face_normals().isfinite().all()

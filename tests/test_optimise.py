@@ -172,3 +172,57 @@ def test_loop_config_rejects_nonsense() -> None:
         LoopConfig(10, checkpoint_every=0)
     with pytest.raises(ValueError):
         LoopConfig(10, grad_clip=0.0)
+    with pytest.raises(ValueError, match="precision"):
+        LoopConfig(10, precision="float8")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="fp16_loss_scale"):
+        LoopConfig(10, fp16_loss_scale=float("inf"))
+
+
+@pytest.mark.parametrize("precision", ["bfloat16", "float16"])
+def test_half_precision_steps_learn_and_keep_float32_parameters(precision: str) -> None:
+    task = Regression(5)
+    res = run_loop(task, LoopConfig(150, log_every=1, grad_clip=None, precision=precision),  # type: ignore[arg-type]
+                   torch.Generator().manual_seed(3), "test")
+    assert res.guards.skipped == 0
+    assert res.history[-1]["full_mse"] < 0.5 * res.history[0]["full_mse"]
+    assert all(p.dtype == torch.float32 and bool(torch.isfinite(p).all()) for p in task.net.parameters())
+
+
+def test_float16_loss_scaling_keeps_tiny_gradients_and_unscales_them() -> None:
+    """A loss of 1e-4·‖net(x)‖² has float16 activation gradients below the subnormal range
+    without scaling; with the default scale the first update's gradients match float32's."""
+
+    class Tiny(Regression):
+        def step(self, step: int, generator: torch.Generator) -> StepOutput:
+            loss = 1e-7 * self.net(self.x[:32]).pow(2).sum()
+            return StepOutput(loss, {}, 0)
+
+    grads = {}
+    for precision, scale in (("float32", 1.0), ("float16", 1024.0), ("float16", 1.0)):
+        task = Tiny(2)
+        grabbed: list[torch.Tensor] = []
+        task.opt.step = lambda *a, _t=task, _g=grabbed, **k: _g.append(_t.net[0].weight.grad.clone())  # type: ignore
+        run_loop(task, LoopConfig(1, grad_clip=None, precision=precision, fp16_loss_scale=scale),  # type: ignore
+                 torch.Generator().manual_seed(0), "t")
+        grads[(precision, scale)] = grabbed[0]
+    ref = grads[("float32", 1.0)]
+    scaled = grads[("float16", 1024.0)]
+    assert torch.allclose(scaled, ref, rtol=0.05, atol=1e-3 * float(ref.abs().max()))
+    unscaled_error = float((grads[("float16", 1.0)] - ref).abs().max())
+    assert unscaled_error > 10 * float((scaled - ref).abs().max())
+
+
+def test_float16_loss_scale_backs_off_after_an_overflow_and_the_run_still_learns() -> None:
+    """A loss whose scaled gradients overflow float16 (65504): the first steps are skipped while the
+    scale halves, then the run learns."""
+
+    class Loud(Regression):
+        def step(self, step: int, generator: torch.Generator) -> StepOutput:
+            out = super().step(step, generator)
+            return StepOutput(out.loss * 3e3, out.terms, 0)
+
+    task = Loud(4)
+    res = run_loop(task, LoopConfig(200, log_every=1, grad_clip=None, precision="float16", max_bad_steps=50),
+                   torch.Generator().manual_seed(3), "test")
+    assert 1 <= res.guards.nonfinite_grad <= 16, res.guards
+    assert res.history[-1]["full_mse"] < 0.5 * res.history[0]["full_mse"]

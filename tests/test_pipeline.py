@@ -110,7 +110,7 @@ def test_a_prior_returning_nan_is_survived_counted_and_kept_out_of_outputs(tmp_p
         suite = build_suite(PriorsConfig(kind="proxy", proxy_grid=24), torch.device(DEVICE),
                             store.stage_dir(KEY, "reference"), KEY, ("3d",))
         assert isinstance(suite, ProxySuite)
-        suite.prior = NaNOnSomeSteps(suite.prior)
+        suite.priors = {role: NaNOnSomeSteps(prior) for role, prior in suite.priors.items()}
         return suite
 
     out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, suites={"nerf_fit": flaky, "dmtet": flaky})
