@@ -65,7 +65,7 @@ SIZES: dict[str, BenchSize] = {
     "cpu": BenchSize(
         scenes=SCENE_NAMES, ablation=_BENCH_CPU,
         timing=(Schedule("draft", "draft"), _BENCH_CPU,
-                Schedule("standard/20", "standard", steps=(150, 75, 75))),
+                Schedule("standard/50", "standard", steps=(60, 30, 30))),
         timing_scenes=("mug", "box"),
         stability=Schedule("stability-cpu", "draft", steps=(60, 30, 30)), stability_scene="mug",
     ),
