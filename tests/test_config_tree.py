@@ -62,7 +62,8 @@ def test_every_paper_ablation_row_is_a_setting() -> None:
     assert set(rows) == set(expected)
     for name, sets in rows.items():
         built = preset("paper", sets).texture.guidance.build()
-        want = expected[name]
+        # A term whose every filter has k = 0 or the null band adds nothing; the settings leave it out.
+        want = [t for t in expected[name].terms if any(f.k > 0 and f.band.kind != "null" for f in t.filters)]
         assert [(t.prior, t.mode, t.filters, t.cfg_scale) for t in built.terms] == \
-               [(t.prior, t.mode, t.filters, t.cfg_scale) for t in want.terms], name
+               [(t.prior, t.mode, t.filters, t.cfg_scale) for t in want], name
 
