@@ -41,8 +41,8 @@ dagster: $(STAMP)
 demo-frequency: $(STAMP)
 	$(PY) benchmarks/frequency_demo.py --out outputs/frequency_demo
 
-# Synthetic scenes with ground truth: ablations, error against time, stability (CPU size, about an
-# hour on 2 cores). BENCH_ARGS="--size large" for more steps and views; "--device cuda" on a GPU.
+# Synthetic scenes with ground truth: ablations, error against time, stability (CPU size, about 45
+# minutes on 2 cores). BENCH_ARGS="--size large" for more steps and views; "--device cuda" on a GPU.
 bench-quality: $(STAMP)
 	$(PY) -m benchmarks.quality $(BENCH_ARGS)
 
