@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ from benchmarks.scene_eval import EvalConfig, evaluate, glb_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, schedule_store, stage_guards
 from benchmarks.scenes import FRAME_FILL, Scene
 from morpheus_core.render.textured import load_textured
+from ops.presets import PipelineConfig
 from ops.uv_bake import ASSET_GLB
 
 log = logging.getLogger("morpheus3d.bench")
@@ -30,13 +31,6 @@ OPTIMISING = ("nerf_fit", "dmtet", "texture_refine")
 
 def _all_stages(setting: str, value: object) -> tuple[str, ...]:
     return tuple(f"{s}.{setting}={value}" for s in STAGES)
-
-
-def _lr_times(factor: float) -> tuple[str, ...]:
-    lrs = {"nerf": ("lr_grid", "lr_mlp"), "dmtet": ("lr_sdf", "lr_deform", "lr_grid", "lr_mlp"),
-           "texture": ("lr_grid", "lr_mlp")}
-    defaults = {"lr_grid": 1e-2, "lr_mlp": 1e-3, "lr_sdf": 1e-3, "lr_deform": 1e-2}
-    return tuple(f"{s}.{name}={defaults[name] * factor:g}" for s, names in lrs.items() for name in names)
 
 
 def _t_range(t: float) -> tuple[str, ...]:
@@ -50,6 +44,15 @@ class Entry:
     name: str
     overrides: tuple[str, ...] = ()
     fill: float = FRAME_FILL  # photo framing: < 0.8 a small object, > 1 cut by the borders
+    lr_factor: float = 1.0  # every learning rate of the three stages, relative to the schedule's own
+
+    def settings(self, cfg: PipelineConfig) -> tuple[str, ...]:
+        """The entry's overrides, with the learning rates read from ``cfg`` and scaled."""
+        if self.lr_factor == 1.0:
+            return self.overrides
+        lrs = tuple(f"{stage}.{f.name}={getattr(getattr(cfg, stage), f.name) * self.lr_factor:g}"
+                    for stage in STAGES for f in fields(getattr(cfg, stage)) if f.name.startswith("lr_"))
+        return (*self.overrides, *lrs)
 
     @property
     def aligned(self) -> bool:
@@ -62,7 +65,7 @@ ENTRIES: tuple[Entry, ...] = (
     *(Entry(f"lambda_c={v:g}", _all_stages("guidance.lambda_c", v)) for v in (0.0, 0.5, 1.0)),
     *(Entry(f"k2d={k:g}", (f"texture.guidance.k2d={k}",)) for k in (10.0, 50.0)),
     Entry("k3d=50", _all_stages("guidance.k3d", 50.0)),
-    Entry("lr x10", _lr_times(10.0)),
+    Entry("lr x10", lr_factor=10.0),
     *(Entry(f"r={r:g}", (f"texture.guidance.r={r}",)) for r in (0.0, 1.0)),
     *(Entry(p, _all_stages("loop.precision", p)) for p in ("bfloat16", "float16")),
     Entry("t=0", _t_range(0.0)),
@@ -87,7 +90,9 @@ def run_stability(scene: Scene, schedule: Schedule, device: str, work: Path, eva
         rec: dict[str, Any] = {"entry": entry.name, "scene": scene.name, "overrides": list(entry.overrides),
                                "fill": entry.fill, "aligned": entry.aligned}
         try:
-            cfg = schedule.config(device, ("texture.follow_plan=false", *entry.overrides))
+            base = schedule.config(device, ("texture.follow_plan=false",))
+            rec["overrides"] = list(entry.settings(base))
+            cfg = schedule.config(device, ("texture.follow_plan=false", *rec["overrides"]))
             out = run_scene(scene, photo_path(scene, work / "photos", entry.fill), store, cfg, schedule.label, key,
                             until="uv_bake")
             rec["finished"] = out.error is None

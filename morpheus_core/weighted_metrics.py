@@ -95,7 +95,7 @@ from torch import Tensor
 from morpheus_core.devices import pick_device
 from morpheus_core.imaging import batch_to_uint8_hwc
 from morpheus_core.lpips import LPIPS, LPIPS_FILE
-from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root
+from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root, spec_named
 
 log = logging.getLogger(__name__)
 
@@ -139,10 +139,7 @@ METRIC_SPECS: tuple[ModelSpec, ...] = (
 
 
 def _spec(name: str) -> ModelSpec:
-    for spec in METRIC_SPECS:
-        if spec.name == name:
-            return spec
-    raise KeyError(f"unknown weighted metric {name!r}; known: {list(METRIC_NAMES)}")
+    return spec_named(METRIC_SPECS, name, "weighted metric")
 
 
 @dataclass(frozen=True)

@@ -143,11 +143,16 @@ def rembg_model_file(model: str = "u2net") -> Path:
     return home / f"{model}.onnx"
 
 
-def _spec(name: str) -> ModelSpec:
-    for spec in MODEL_SPECS:
+def spec_named(specs: tuple[ModelSpec, ...] | list[ModelSpec], name: str, kind: str = "model") -> ModelSpec:
+    """The spec called ``name``; ``KeyError`` listing the known names otherwise."""
+    for spec in specs:
         if spec.name == name:
             return spec
-    raise KeyError(f"unknown model {name!r}; known: {[s.name for s in MODEL_SPECS]}")
+    raise KeyError(f"unknown {kind} {name!r}; known: {[s.name for s in specs]}")
+
+
+def _spec(name: str) -> ModelSpec:
+    return spec_named(MODEL_SPECS, name)
 
 
 @dataclass(frozen=True)
