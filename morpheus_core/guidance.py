@@ -195,6 +195,23 @@ def _draw(
     return TermDraw(t, _randn_like(z0, generator), ft, _randn_like(z0, generator))
 
 
+def _draw_objects(
+    term: PriorTerm, z0: Tensor, schedule: NoiseSchedule, step: int,
+    generators: torch.Generator | Sequence[torch.Generator] | None,
+) -> TermDraw:
+    """One draw per object from that object's own generator, so an object optimised in a batch
+    sees the very t and ε it would see alone (equal-sized, object-major rows)."""
+    if generators is None or isinstance(generators, torch.Generator):
+        return _draw(term, z0, schedule, step, generators)
+    parts = [_draw(term, z, schedule, step, g) for z, g in zip(z0.chunk(len(generators)), generators, strict=True)]
+
+    def cat(name: str) -> Tensor | None:
+        values = [getattr(p, name) for p in parts]
+        return None if values[0] is None else torch.cat(values)
+
+    return TermDraw(cat("t"), cat("noise"), cat("finetune_t"), cat("finetune_noise"))  # type: ignore[arg-type]
+
+
 def hybrid_guidance(
     config: GuidanceConfig,
     bindings: Mapping[str, PriorBinding],
@@ -203,16 +220,26 @@ def hybrid_guidance(
     step: int,
     reference_render: Tensor | None = None,
     reference: Tensor | None = None,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | Sequence[torch.Generator] | None = None,
     draws: Sequence[TermDraw] | None = None,
+    objects: int = 1,
 ) -> GuidanceOutput:
     """One step of Algorithm 1 for renders ``novel`` (B×3×H×W) of randomly sampled cameras.
 
     ``reference_render`` is the render of the reference camera and ``reference`` the photo y
     (same shape); pass both or neither. ``draws`` fixes t and ε per term (one per term, in order).
+
+    ``objects`` > 1: the rows are that many independent objects, object-major (``novel`` holds
+    B/objects views of each, ``reference`` one row each). Expectations are then taken per object
+    and summed over objects, so each object's gradient equals its gradient alone; ``generator``
+    may then be one generator per object (see ``_draw_objects``).
     """
     if (reference_render is None) != (reference is None):
         raise ValueError("pass both reference_render and reference, or neither")
+    if objects < 1 or novel.shape[0] % objects or (reference is not None and reference.shape[0] % objects):
+        raise ValueError(f"{novel.shape[0]} renders (and the references) must split evenly into {objects} objects")
+    if not isinstance(generator, torch.Generator | None) and len(generator) != objects:
+        raise ValueError(f"{len(generator)} generators given for {objects} objects")
     missing = [n for n in config.prior_names if n not in bindings]
     if missing:
         raise KeyError(f"guidance config names priors {missing} but only {sorted(bindings)} are bound")
@@ -231,7 +258,7 @@ def hybrid_guidance(
     loss = novel.new_zeros((), dtype=work_dtype(novel))
     finetune_loss = novel.new_zeros((), dtype=work_dtype(novel))
     encoded: dict[str, Tensor] = {}
-    batch = novel.shape[0]
+    views = novel.shape[0] // objects  # the expectation over cameras is per object
 
     for i, term in enumerate(config.terms):
         if not term.is_active:
@@ -240,7 +267,7 @@ def hybrid_guidance(
         if term.prior not in encoded:  # one encode per prior even when it has several terms
             encoded[term.prior] = bind.prior.encode(novel)
         z0 = encoded[term.prior]
-        draw = draws[i] if draws is not None else _draw(term, z0, schedule, step, generator)
+        draw = draws[i] if draws is not None else _draw_objects(term, z0, schedule, step, generator)
         zt = schedule.add_noise(z0.detach(), draw.noise.to(z0), draw.t)
         with torch.no_grad():
             eps_pred = bind.prior.predict_noise(zt, draw.t, bind.condition, term.cfg_scale)
@@ -255,7 +282,7 @@ def hybrid_guidance(
         residual = torch.nan_to_num(residual, nan=0.0, posinf=0.0, neginf=0.0)
         filtered = sum(f.k * filter_residual(residual, f.band) for f in term.filters)
         w = schedule.weight(draw.t, term.weighting, like=residual)
-        g = _sanitize(config.lambda_c * w * filtered / batch, config.grad_clip)
+        g = _sanitize(config.lambda_c * w * filtered / views, config.grad_clip)
         loss = loss + inject_gradient(z0, g)
         stats[f"term{i}/{term.prior}/grad_norm"] = g.detach().norm()
         stats[f"term{i}/{term.prior}/t_mean"] = draw.t.float().mean()
@@ -268,7 +295,7 @@ def hybrid_guidance(
             fnoise = fnoise.to(z0)
             zft = schedule.add_noise(z0.detach(), fnoise, ft)
             pred = bind.finetuned.predict_noise(zft, ft, bind.condition, 1.0)
-            ft_loss = (pred.to(wd) - fnoise.to(wd)).pow(2).mean()
+            ft_loss = (pred.to(wd) - fnoise.to(wd)).pow(2).mean() * objects  # Σ over objects of their means
             finetune_loss = finetune_loss + ft_loss
             stats[f"term{i}/{term.prior}/finetune_loss"] = ft_loss.detach()
 
@@ -277,7 +304,7 @@ def hybrid_guidance(
             for m, f in enumerate(term.filters):
                 if f.k == 0.0:
                     continue
-                rl = frequency_reference_loss(reference_render, reference, f.band) / reference.shape[0]
+                rl = frequency_reference_loss(reference_render, reference, f.band) / (reference.shape[0] // objects)
                 loss = loss + f.k * ref_scale * rl
                 stats[f"term{i}/{term.prior}/ref{m}"] = rl.detach()
 

@@ -25,15 +25,15 @@ from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, 
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.geometry.winding import winding_number
-from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
 from ops.colour_fit import fit_colour_field, jittered_surface_points
 from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask
+from ops.guided_task import GuidedTask, RenderedStep
 from ops.nerf_fit import NERF_FILE
-from ops.optimise import BadStep, LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.object_batch import StageJob
+from ops.optimise import BadStep, LoopConfig, LoopResult, ProgressFn
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
     ReferenceTarget,
@@ -109,7 +109,7 @@ class DMTetTask(GuidedTask):
         except (EmptySurfaceError, NonFiniteFieldError) as exc:
             raise BadStep(str(exc)) from exc
 
-    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+    def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         cfg, r = self.cfg, self.cfg.resolution
         mesh = self.mesh()
         if mesh.num_faces == 0:
@@ -117,17 +117,14 @@ class DMTetTask(GuidedTask):
         ref = render_mesh(mesh, self.target.camera, r, r, self.texture)
         cams = novel_cameras(cfg.n_views, generator, self.device)
         novel = render_mesh(mesh, cams, r, r, self.texture).rgb_chw()
-        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel), self.schedule, novel, step,
-                              ref.rgb_chw(), self.target.rgb, generator)
         m = mask_loss(ref.opacity_chw(), self.target.mask)
         lap, nc = laplacian_smoothness(mesh), normal_consistency(mesh)
         reg = self.dmtet.sdf_regulariser()
-        px = pixels(r)
-        loss = (out.loss + out.finetune_loss + cfg.mask_weight * m
-                + px * (cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc + cfg.sdf_reg_weight * reg))
-        terms = {"guidance": out.loss.detach(), "mask_bce": m.detach(), "laplacian": lap.detach(),
-                 "normal_consistency": nc.detach(), "sdf_reg": reg.detach()}
-        return StepOutput(loss, terms, out.nonfinite_prior_values)
+        loss = cfg.mask_weight * m + pixels(r) * (cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc
+                                                  + cfg.sdf_reg_weight * reg)
+        terms = {"mask_bce": m.detach(), "laplacian": lap.detach(), "normal_consistency": nc.detach(),
+                 "sdf_reg": reg.detach()}
+        return RenderedStep(cams, novel, ref.rgb_chw(), loss, terms)
 
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
@@ -189,11 +186,11 @@ def load_mesh(path: Path, device: torch.device) -> Mesh:
     return Mesh(data["vertices"].to(device), data["faces"].to(device))
 
 
-def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
-              nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
-              device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-              progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``."""
+def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
+                nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
+                device: str = "auto", seed: int = 0, suite: PriorSuite | None = None) -> StageJob:
+    """Stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``, set up to run
+    (alone or in a batch)."""
     if (nerf_dir is None) == (init_mesh is None):
         raise ValueError("give exactly one of nerf_dir (the NeRF stage's output) or init_mesh (a GLB/OBJ)")
     dev = pick_device(device)
@@ -212,7 +209,11 @@ def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: P
     suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
     try:
         task = DMTetTask(cfg, target, suite, dmtet, texture, dev)
-        result = run_loop(task, cfg.loop, generator, "dmtet", checkpoint_dir, progress)
+    except BaseException:
+        suite.close()
+        raise
+
+    def finish(result: LoopResult) -> StageResult:
         mesh = task.mesh()
         require_finite_output("dmtet", {"vertices": mesh.vertices, **dict(texture.state_dict())})
         save_mesh(out_dir / MESH_FILE, mesh)
@@ -223,5 +224,14 @@ def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: P
         metrics = loop_metrics(result) | {"grid": grid, "faces": mesh.num_faces, "vertices": mesh.num_vertices,
                                           "colour_fit_mse": round(fit_mse, 6)}
         return StageResult(metrics, suite.description, str(dev), notes)
-    finally:
-        suite.close()
+
+    return StageJob("dmtet", task, generator, cfg.loop, finish, suite.close)
+
+
+def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
+              nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
+              device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+              progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``."""
+    return start_dmtet(reference_dir, out_dir, cfg, priors, object_id, nerf_dir, init_mesh, planned_grid, device,
+                       seed, suite).run(checkpoint_dir, progress)

@@ -1,20 +1,25 @@
 """What the three optimising stages' tasks share: their state, the prior suite's updates, evaluation.
 
-A subclass names its modules and optimiser groups and implements ``step`` and ``render_eval``; the
-checkpointed state (every module's state dict, the Adam moments, the priors' LoRA state), the VSD
-counterpart updates and the reference-view PSNR for the run log are the same for all of them.
+A subclass names its modules and optimiser groups and implements ``render_step`` (this step's
+renders and its own losses) and ``render_eval``; the guidance call, the checkpointed state (every
+module's state dict, the Adam moments, the priors' LoRA state), the VSD counterpart updates and
+the reference-view PSNR for the run log are the same for all of them. Splitting the renders from
+the guidance is what lets ``ops.object_batch`` guide many objects with one prior forward.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
+from morpheus_core.cameras import Cameras
 from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
 from morpheus_core.render.output import RenderOutput
 from ops.guidance_settings import GuidanceSettings
 from ops.optimise import StepOutput
@@ -25,6 +30,24 @@ from ops.stage_common import ReferenceTarget, reference_psnr
 def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
     """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move."""
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+
+
+@dataclass
+class RenderedStep:
+    """One object's renders for a step: the random views (V×3×H×W) and their cameras, the
+    reference-view render (1×3×H×W), and the stage's own loss terms (mask, regularisers)."""
+
+    cameras: Cameras
+    novel: Tensor
+    reference: Tensor
+    extra_loss: Tensor
+    terms: dict[str, Tensor] = field(default_factory=dict)
+
+
+def step_output(out: GuidanceOutput, extra_loss: Tensor, terms: dict[str, Tensor], vsd: bool) -> StepOutput:
+    """A step's loss: the guidance (θ), the VSD counterparts' loss (φ) and the stage's own terms."""
+    terms = {"guidance": out.loss.detach(), **({"finetune": out.finetune_loss.detach()} if vsd else {}), **terms}
+    return StepOutput(out.loss + out.finetune_loss + extra_loss, terms, out.nonfinite_prior_values)
 
 
 class GuidedTask(ABC):
@@ -42,8 +65,15 @@ class GuidedTask(ABC):
         return {"adam": self.opt}
 
     @abstractmethod
+    def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
+        """This step's renders (reference view and random views) and the stage's own losses."""
+
     def step(self, step: int, generator: torch.Generator) -> StepOutput:
         """One step's loss: the reference view and random views under the guidance."""
+        r = self.render_step(step, generator)
+        out = hybrid_guidance(self.guidance, self.suite.bindings(r.cameras, r.novel), self.schedule, r.novel, step,
+                              r.reference, self.target.rgb, generator)
+        return step_output(out, r.extra_loss, r.terms, bool(self.guidance.needs_finetuned))
 
     @abstractmethod
     def render_eval(self, cameras: Any, size: int | None = None) -> RenderOutput:

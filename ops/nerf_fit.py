@@ -18,11 +18,11 @@ from torch import Tensor
 
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
 from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask
-from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.guided_task import GuidedTask, RenderedStep
+from ops.object_batch import StageJob
+from ops.optimise import LoopConfig, LoopResult, ProgressFn
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
     ReferenceTarget,
@@ -92,7 +92,7 @@ class NerfTask(GuidedTask):
         return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
                              generator)
 
-    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+    def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         cfg = self.cfg
         self.field.update_step(step)
         if cfg.use_occupancy:
@@ -101,17 +101,13 @@ class NerfTask(GuidedTask):
         cams = novel_cameras(cfg.n_views, generator, self.device)
         smooth = cfg.normal_smooth_weight > 0
         novel = self._render(cams, generator, smooth)
-        novel_rgb = novel.rgb_chw()
-        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel_rgb), self.schedule, novel_rgb, step,
-                              ref.rgb_chw(), self.target.rgb, generator)
         m = mask_loss(ref.opacity_chw(), self.target.mask)
-        loss = out.loss + cfg.mask_weight * m + out.finetune_loss
-        terms = {"guidance": out.loss.detach(), "mask_bce": m.detach()}
+        loss, terms = cfg.mask_weight * m, {"mask_bce": m.detach()}
         if smooth:
             s = normal_smoothness(novel.normal, novel.opacity)
             loss = loss + cfg.normal_smooth_weight * s
             terms["normal_smooth"] = s.detach()
-        return StepOutput(loss, terms, out.nonfinite_prior_values)
+        return RenderedStep(cams, novel.rgb_chw(), ref.rgb_chw(), loss, terms)
 
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
@@ -120,10 +116,10 @@ class NerfTask(GuidedTask):
         return render_volume(self.field, cameras, r, r, self.eval_render, 1.0, occ)
 
 
-def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
-             device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-             progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 1a for a prepared reference folder; writes into ``out_dir``."""
+def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
+               device: str = "auto", seed: int = 0, suite: PriorSuite | None = None) -> StageJob:
+    """Stage 1a for a prepared reference folder, set up to run (alone or in a batch); writes into
+    ``out_dir`` when it finishes."""
     dev = pick_device(device)
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
@@ -131,7 +127,11 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
     suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
     try:
         task = NerfTask(cfg, target, suite, dev, generator)
-        result = run_loop(task, cfg.loop, generator, "nerf_fit", checkpoint_dir, progress)
+    except BaseException:
+        suite.close()
+        raise
+
+    def finish(result: LoopResult) -> StageResult:
         task.field.update_step(cfg.loop.steps)
         require_finite_output("nerf_fit", dict(task.field.state_dict()))
         save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.density})
@@ -140,8 +140,15 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
         metrics = loop_metrics(result) | {"ref_psnr": task.evaluate()["ref_psnr"],
                                           "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
         return StageResult(metrics, suite.description, str(dev))
-    finally:
-        suite.close()
+
+    return StageJob("nerf_fit", task, generator, cfg.loop, finish, suite.close)
+
+
+def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
+             device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+             progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 1a for a prepared reference folder; writes into ``out_dir``."""
+    return start_nerf(reference_dir, out_dir, cfg, priors, object_id, device, seed, suite).run(checkpoint_dir, progress)
 
 
 def small_field(levels: int = 8, log2_table: int = 15, hidden: int = 32) -> NerfConfig:

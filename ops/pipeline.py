@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field, is_dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -23,10 +25,11 @@ from typing import Any
 from assets_store.hashing import bytes_sha256, config_hash, file_sha256
 from assets_store.manifest import Fingerprint, Manifest
 from assets_store.photo_hashes import PhotoHashes
-from assets_store.store import Store
+from assets_store.store import StageWriter, Store
 from ops import dmtet as dmtet_stage
 from ops import nerf_fit, qa, texture_refine, uv_bake
 from ops.config_tree import to_dict
+from ops.object_batch import StageJob, run_jobs
 from ops.optimise import ProgressEvent, ProgressFn
 from ops.plan import StagePlan, plan_reference, read_plan
 from ops.presets import PipelineConfig
@@ -87,11 +90,15 @@ class MissingUpstreamError(RuntimeError):
 
 @dataclass(frozen=True)
 class StageSpec:
-    """What decides a stage's output (its config and input digests) and the body that makes it."""
+    """What decides a stage's output (its config and input digests) and the body that makes it.
+
+    ``start`` (optimising stages that will optimise): sets the stage up as a ``StageJob`` writing
+    into the given folder, so several photos can run it together (``run_batch``)."""
 
     config: dict[str, Any]
     inputs: dict[str, str]
     body: Callable[[Path, Path | None], StageResult]
+    start: Callable[[Path], StageJob] | None = None
 
 
 class PhotoRun:
@@ -157,35 +164,48 @@ class PhotoRun:
             self.memo[key] = config_hash(json.loads(json.dumps(to_dict(spec.config), default=str)))
         return Fingerprint(inputs=spec.inputs, config_hash=self.memo[key], code_version=CODE_VERSIONS[stage])
 
-    def run(self, stage: str) -> Manifest:
-        """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
-        spec = self.spec(stage)
-        fp = self.fingerprint(stage, spec)
+    def cached(self, stage: str, spec: StageSpec, fp: Fingerprint) -> Manifest | None:
+        """The finished output matching ``fp``, recorded as this run's output of ``stage``."""
         cached = self.store.lookup(self.key, stage, fp)
         if cached is not None:
             self.outcome.stages.append(StageOutcome(stage, "cached", 0.0, cached))
             self._report(stage, "cached")
             self.done[stage] = cached
+        return cached
+
+    def checkpoint_path(self, stage: str, spec: StageSpec, fp: Fingerprint) -> Path:
+        root = self.store.checkpoint_dir(self.key, stage)
+        return root / fp.config_hash[:12] / bytes_sha256(repr(sorted(spec.inputs.items())).encode())[:12]
+
+    def run(self, stage: str) -> Manifest:
+        """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
+        spec = self.spec(stage)
+        fp = self.fingerprint(stage, spec)
+        cached = self.cached(stage, spec, fp)
+        if cached is not None:
             return cached
-        ckpt_root = self.store.checkpoint_dir(self.key, stage)
-        ckpt = ckpt_root / fp.config_hash[:12] / bytes_sha256(repr(sorted(spec.inputs.items())).encode())[:12]
+        ckpt = self.checkpoint_path(stage, spec, fp)
         resumed = ckpt.is_dir() and any(ckpt.iterdir())
         start = time.perf_counter()
         with self.store.stage_writer(self.key, stage) as writer:
             result = spec.body(writer.path, ckpt)
-            wall = time.perf_counter() - start
-            plan = self.plan if stage != "reference" else read_plan(writer.path)
-            manifest = Manifest(
-                stage=stage, photo_key=self.key, fingerprint=fp, outputs={},
-                config=json.loads(json.dumps(to_dict(spec.config), default=str)),
-                metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
-                plan={} if plan is None else {"refine": plan.highpass_refinement.action,
-                                              "grid": plan.dmtet_grid.value, "export_faces": plan.export.value,
-                                              "summary": plan.summary()},
-                prior=result.prior, notes=tuple(result.notes),
-                created_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            )
-            manifest = writer.commit(manifest)
+            return self.commit(stage, spec, fp, writer, result, time.perf_counter() - start, resumed)
+
+    def commit(self, stage: str, spec: StageSpec, fp: Fingerprint, writer: StageWriter, result: StageResult,
+               wall: float, resumed: bool) -> Manifest:
+        """Commit a finished stage folder with its manifest; its checkpoints are no longer needed."""
+        plan = self.plan if stage != "reference" else read_plan(writer.path)
+        manifest = Manifest(
+            stage=stage, photo_key=self.key, fingerprint=fp, outputs={},
+            config=json.loads(json.dumps(to_dict(spec.config), default=str)),
+            metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
+            plan={} if plan is None else {"refine": plan.highpass_refinement.action,
+                                          "grid": plan.dmtet_grid.value, "export_faces": plan.export.value,
+                                          "summary": plan.summary()},
+            prior=result.prior, notes=tuple(result.notes),
+            created_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        )
+        manifest = writer.commit(manifest)
         self.store.clear_checkpoints(self.key, stage)
         status = "resumed" if resumed else "ran"
         if result.metrics.get("skipped"):
@@ -194,6 +214,13 @@ class PhotoRun:
         self._report(stage, status)
         self.done[stage] = manifest
         return manifest
+
+    def fail(self, stage: str, exc: BaseException) -> None:
+        """Record that ``stage`` failed for this photo (its later stages do not run)."""
+        log.error("%s: stage %s failed: %s", self.key, stage, exc)
+        log.debug("%s", traceback.format_exc())
+        self.outcome.error = f"{stage}: {type(exc).__name__}: {exc}"
+        self.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, str(exc)))
 
     def status(self) -> dict[str, str]:
         """Per stage: ``fresh`` (its output matches what this config and the current inputs would
@@ -254,11 +281,12 @@ class PhotoRun:
         config = {"nerf": cfg.nerf, "priors": cfg.priors, "prior_kind": self.prior_kind(cfg.nerf.guidance.roles),
                   "seed": cfg.seed}
 
-        def body(out: Path, ckpt: Path | None) -> StageResult:
-            return nerf_fit.fit_nerf(self.dir("reference"), out, cfg.nerf, cfg.priors, self.key, cfg.device,
-                                     cfg.seed, ckpt, self._progress(), self._suite("nerf_fit"))
+        def start(out: Path) -> StageJob:
+            return nerf_fit.start_nerf(self.dir("reference"), out, cfg.nerf, cfg.priors, self.key, cfg.device,
+                                       cfg.seed, self._suite("nerf_fit"))
 
-        return StageSpec(config, {"reference": self.digest("reference")}, body)
+        return StageSpec(config, {"reference": self.digest("reference")},
+                         lambda out, ckpt: start(out).run(ckpt, self._progress()), start)
 
     def _dmtet(self) -> StageSpec:
         cfg = self.cfg
@@ -272,13 +300,12 @@ class PhotoRun:
         else:
             inputs["nerf_fit"] = self.digest("nerf_fit")
 
-        def body(out: Path, ckpt: Path | None) -> StageResult:
+        def start(out: Path) -> StageJob:
             nerf_dir = None if self.init_mesh is not None else self.dir("nerf_fit")
-            return dmtet_stage.fit_dmtet(self.dir("reference"), out, cfg.dmtet, cfg.priors, self.key, nerf_dir,
-                                         self.init_mesh, grid, cfg.device, cfg.seed, ckpt, self._progress(),
-                                         self._suite("dmtet"))
+            return dmtet_stage.start_dmtet(self.dir("reference"), out, cfg.dmtet, cfg.priors, self.key, nerf_dir,
+                                           self.init_mesh, grid, cfg.device, cfg.seed, self._suite("dmtet"))
 
-        return StageSpec(config, inputs, body)
+        return StageSpec(config, inputs, lambda out, ckpt: start(out).run(ckpt, self._progress()), start)
 
     def _texture(self) -> StageSpec:
         cfg = self.cfg
@@ -289,12 +316,16 @@ class PhotoRun:
         config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
                   "prior_kind": self.prior_kind(cfg.texture.guidance.roles)}
 
-        def body(out: Path, ckpt: Path | None) -> StageResult:
-            return texture_refine.refine_texture(self.dir("reference"), self.dir("dmtet"), out, cfg.texture,
-                                                 cfg.priors, self.key, refine, reason, cfg.device, cfg.seed, ckpt,
-                                                 self._progress(), self._suite("texture_refine"))
+        if cfg.texture.follow_plan and not refine:
+            return StageSpec(config, inputs, lambda out, _ckpt: texture_refine.pass_through(
+                self.dir("dmtet"), out, cfg.device, reason))
 
-        return StageSpec(config, inputs, body)
+        def start(out: Path) -> StageJob:
+            return texture_refine.start_texture(self.dir("reference"), self.dir("dmtet"), out, cfg.texture,
+                                                cfg.priors, self.key, cfg.device, cfg.seed,
+                                                self._suite("texture_refine"))
+
+        return StageSpec(config, inputs, lambda out, ckpt: start(out).run(ckpt, self._progress()), start)
 
     def _bake(self) -> StageSpec:
         cfg = self.cfg
@@ -335,12 +366,96 @@ def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
         try:
             run.run(stage)
         except Exception as exc:
-            log.error("%s: stage %s failed: %s", key, stage, exc)
-            log.debug("%s", traceback.format_exc())
-            run.outcome.error = f"{stage}: {type(exc).__name__}: {exc}"
-            run.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, str(exc)))
+            run.fail(stage, exc)
             break
     return run.outcome
+
+
+def _batch_checkpoint(runs: list[tuple[PhotoRun, StageSpec, Fingerprint]], stage: str) -> Path:
+    """One folder per batch composition (same photos, configs and inputs), under the first photo's
+    checkpoints: re-running the same batch resumes it, another batch starts afresh."""
+    first = runs[0][0]
+    digest = bytes_sha256(repr(sorted(str(r.checkpoint_path(stage, spec, fp)) for r, spec, fp in runs)).encode())
+    return first.store.checkpoint_dir(first.key, stage) / f"batch-{digest[:16]}"
+
+
+def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
+    """``stage`` for every run that has not failed: cached ones are reused, the optimising ones run
+    as one batch (``ops.object_batch``), the rest one by one. Failures are recorded per photo."""
+    pending: list[tuple[PhotoRun, StageSpec, Fingerprint]] = []
+    for run in runs:
+        try:
+            spec = run.spec(stage)
+            fp = run.fingerprint(stage, spec)
+            if run.cached(stage, spec, fp) is not None:
+                continue
+            if spec.start is None:
+                run.run(stage)
+            else:
+                pending.append((run, spec, fp))
+        except Exception as exc:
+            run.fail(stage, exc)
+    if len(pending) == 1:
+        run = pending[0][0]
+        try:
+            run.run(stage)
+        except Exception as exc:
+            run.fail(stage, exc)
+        return
+    if not pending:
+        return
+    ckpt = _batch_checkpoint(pending, stage)
+    resumed = ckpt.is_dir() and any(ckpt.iterdir())
+    start = time.perf_counter()
+    with ExitStack() as stack:
+        started: list[tuple[PhotoRun, StageSpec, Fingerprint, StageWriter, StageJob]] = []
+        for run, spec, fp in pending:
+            try:
+                writer = stack.enter_context(run.store.stage_writer(run.key, stage))
+                started.append((run, spec, fp, writer, spec.start(writer.path)))  # type: ignore[misc]
+            except Exception as exc:
+                run.fail(stage, exc)
+        if not started:
+            return
+        keys = [r.key for r, *_ in started]
+        progress = started[0][0].progress
+        report = None if progress is None else (lambda e: progress(ProgressEvent(
+            f"batch of {len(keys)}:{e.stage}", e.step, e.total, e.elapsed_s, e.metrics)))
+        log.info("%s: %d photos optimised together (%s)", stage, len(keys), ", ".join(keys))
+        try:
+            results = run_jobs([job for *_, job in started], ckpt, report, started[0][0].cfg.seed)
+        except Exception as exc:
+            for run, *_ in started:
+                run.fail(stage, exc)
+            return
+        wall = time.perf_counter() - start
+        for (run, spec, fp, writer, _job), result in zip(started, results, strict=True):
+            if isinstance(result, Exception):
+                run.fail(stage, result)
+                continue
+            try:
+                run.commit(stage, spec, fp, writer, result, wall, resumed)
+            except Exception as exc:
+                run.fail(stage, exc)
+    shutil.rmtree(ckpt, ignore_errors=True)
+
+
+def run_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineConfig, preset: str,
+              init_mesh: Path | None = None, progress: ProgressFn | None = None,
+              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "qa") -> list[PhotoOutcome]:
+    """Every stage for several photos (``(photo, key)`` pairs), stage by stage: the optimising
+    stages of all photos that need them run together as one batch, so one prior forward serves
+    every photo. Same outputs, caching and manifests as ``run_photo``; a failing photo stops
+    only itself. Each manifest's wall time is its batch's."""
+    if until not in STAGES:
+        raise ValueError(f"until must be one of {STAGES}, got {until!r}")
+    runs = [PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites) for photo, key in photos]
+    for run in runs:
+        store.cleanup_staging(run.key)
+    for stage in [s for s in STAGES if STAGES.index(s) <= STAGES.index(until)]:
+        live = [r for r in runs if r.outcome.error is None and stage in r.stages]
+        _run_stage_together(live, stage)
+    return [r.outcome for r in runs]
 
 
 def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str, stage: str,

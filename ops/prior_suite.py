@@ -139,9 +139,19 @@ class ProxySuite(PriorSuite):
 
 
 class ModelCache:
-    """Loaded real priors, kept for the process: loading is slow and the weights are frozen."""
+    """Loaded real priors, kept for the process: loading is slow and the weights are frozen. Each
+    model's per-object LoRA adapters live in one ``ObjectLoras`` per (model, settings), so objects
+    optimised together share it and one row-batched forward serves them all."""
 
     _models: dict[tuple[str, str, str], Any] = {}  # noqa: RUF012 — a process-wide cache by design
+    _loras: dict[tuple[int, LoraSettings], ObjectLoras] = {}  # noqa: RUF012
+
+    @classmethod
+    def loras(cls, model: Any, settings: LoraSettings) -> ObjectLoras:
+        key = (id(model), settings)
+        if key not in cls._loras:
+            cls._loras[key] = ObjectLoras(model, settings)
+        return cls._loras[key]
 
     @classmethod
     def get(cls, role: str, cfg: PriorsConfig, runtime: PriorRuntime) -> Any:
@@ -172,7 +182,7 @@ class RealSuite(PriorSuite):
         settings = LoraSettings(rank=cfg.lora_rank, lr=cfg.lora_lr)
         self.loras: dict[str, ObjectLoras] = {}
         for role in vsd_roles:
-            loras = ObjectLoras(self.models[role], settings)
+            loras = ModelCache.loras(self.models[role], settings)
             loras.add(object_id)
             self.loras[role] = loras
         names = {"3d": "Zero123", "2d": "SD1.5 + canny ControlNet + IP-Adapter"}
@@ -193,7 +203,7 @@ class RealSuite(PriorSuite):
     def after_step(self, ok: bool) -> None:
         for loras in self.loras.values():
             if ok:
-                loras.step()  # skips (and reports) an adapter whose own gradients are not finite
+                loras.step([self.object_id])  # skips an adapter whose own gradients are not finite
             else:
                 for p in loras.parameters(self.object_id):
                     p.grad = None

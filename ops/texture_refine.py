@@ -18,14 +18,14 @@ from typing import Any
 import torch
 
 from morpheus_core.geometry.mesh import Mesh
-from morpheus_core.guidance import hybrid_guidance
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.dmtet import MESH_FILE as DMTET_MESH
 from ops.dmtet import TEXTURE_FILE, load_mesh
 from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask
-from ops.optimise import LoopConfig, ProgressFn, StepOutput, run_loop
+from ops.guided_task import GuidedTask, RenderedStep
+from ops.object_batch import StageJob
+from ops.optimise import LoopConfig, LoopResult, ProgressFn
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
     PREVIEW_FILE,
@@ -71,15 +71,12 @@ class TextureTask(GuidedTask):
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
         ], device)
 
-    def step(self, step: int, generator: torch.Generator) -> StepOutput:
+    def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         r = self.cfg.resolution
         ref = render_mesh(self.mesh, self.target.camera, r, r, self.texture)
         cams = novel_cameras(self.cfg.n_views, generator, self.device)
         novel = render_mesh(self.mesh, cams, r, r, self.texture).rgb_chw()
-        out = hybrid_guidance(self.guidance, self.suite.bindings(cams, novel), self.schedule, novel, step,
-                              ref.rgb_chw(), self.target.rgb, generator)
-        terms = {"guidance": out.loss.detach(), "finetune": out.finetune_loss.detach()}
-        return StepOutput(out.loss + out.finetune_loss, terms, out.nonfinite_prior_values)
+        return RenderedStep(cams, novel, ref.rgb_chw(), novel.new_zeros(()))
 
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
@@ -87,17 +84,19 @@ class TextureTask(GuidedTask):
         return render_mesh(self.mesh, cameras, r, r, self.texture)
 
 
-def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
-                   priors: PriorsConfig, object_id: str, plan_refine: bool = True, plan_reason: str = "",
-                   device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-                   progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 2 on the DMTet stage's mesh and texture field; pass through when the plan says so."""
+def pass_through(dmtet_dir: Path, out_dir: Path, device: str, plan_reason: str) -> StageResult:
+    """The recorded pass-through of a flat texture: the DMTet stage's texture field is kept."""
+    shutil.copyfile(Path(dmtet_dir) / TEXTURE_FILE, out_dir / TEXTURE_FILE)
+    shutil.copyfile(Path(dmtet_dir) / PREVIEW_FILE, out_dir / PREVIEW_FILE)
+    return StageResult({"skipped": True, "steps_run": 0}, "none (pass-through)", str(pick_device(device)),
+                       [f"pass-through: the plan skips high-pass refinement — {plan_reason}"])
+
+
+def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
+                  priors: PriorsConfig, object_id: str, device: str = "auto", seed: int = 0,
+                  suite: PriorSuite | None = None) -> StageJob:
+    """Stage 2 on the DMTet stage's mesh and texture field, set up to run (alone or in a batch)."""
     dev = pick_device(device)
-    if cfg.follow_plan and not plan_refine:
-        shutil.copyfile(Path(dmtet_dir) / TEXTURE_FILE, out_dir / TEXTURE_FILE)
-        shutil.copyfile(Path(dmtet_dir) / PREVIEW_FILE, out_dir / PREVIEW_FILE)
-        return StageResult({"skipped": True, "steps_run": 0}, "none (pass-through)", str(dev),
-                           [f"pass-through: the plan skips high-pass refinement — {plan_reason}"])
     generator = torch.Generator().manual_seed(seed + 2)
     torch.manual_seed(seed + 2)
     mesh = load_mesh(Path(dmtet_dir) / DMTET_MESH, dev)
@@ -107,12 +106,27 @@ def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: Tex
     try:
         task = TextureTask(cfg, target, suite, mesh, texture, dev)
         before = task.evaluate()["ref_psnr"]
-        result = run_loop(task, cfg.loop, generator, "texture_refine", checkpoint_dir, progress)
+    except BaseException:
+        suite.close()
+        raise
+
+    def finish(result: LoopResult) -> StageResult:
         require_finite_output("texture_refine", dict(texture.state_dict()))
         save_module(out_dir / TEXTURE_FILE, texture, tex_cfg)
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
         return StageResult(loop_metrics(result) | {"ref_psnr_before": before, "skipped": False},
                            suite.description, str(dev))
-    finally:
-        suite.close()
+
+    return StageJob("texture_refine", task, generator, cfg.loop, finish, suite.close)
+
+
+def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
+                   priors: PriorsConfig, object_id: str, plan_refine: bool = True, plan_reason: str = "",
+                   device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
+                   progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
+    """Run stage 2 on the DMTet stage's mesh and texture field; pass through when the plan says so."""
+    if cfg.follow_plan and not plan_refine:
+        return pass_through(dmtet_dir, out_dir, device, plan_reason)
+    return start_texture(reference_dir, dmtet_dir, out_dir, cfg, priors, object_id, device, seed,
+                         suite).run(checkpoint_dir, progress)

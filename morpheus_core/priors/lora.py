@@ -153,11 +153,14 @@ class ObjectLoras:
 
     # -- optimisation ---------------------------------------------------------------------------
 
-    def step(self) -> tuple[str, ...]:
-        """One Adam step per object that received gradients; returns objects skipped because
-        their gradients were not finite (a half-precision overflow must not corrupt an adapter)."""
+    def step(self, object_ids: Sequence[str] | None = None) -> tuple[str, ...]:
+        """One Adam step per object (of ``object_ids``, default all) that received gradients;
+        returns objects skipped because their gradients were not finite (a half-precision overflow
+        must not corrupt an adapter)."""
         skipped = []
-        for oid, opt in self._optimizers.items():
+        self._require(object_ids or ())
+        for oid in object_ids if object_ids is not None else tuple(self._optimizers):
+            opt = self._optimizers[oid]
             grads = [p.grad for p in self.parameters(oid) if p.grad is not None]
             if grads and not bool(torch.isfinite(torch.stack([g.abs().amax() for g in grads])).all()):
                 skipped.append(oid)
