@@ -48,7 +48,9 @@ class PriorsConfig:
     kind: PriorKind = "auto"
     models_root: str | None = None
     dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
-    accel: Literal["eager", "cudagraph", "compile"] = "eager"
+    # auto: frozen forwards replayed from CUDA graphs on CUDA (they are launch-bound: 68 → 20 ms
+    # per Zero123 SDS step on an H200), eager elsewhere.
+    accel: Literal["auto", "eager", "cudagraph", "compile"] = "auto"
     image2d_resolution: int = 512
     lora_rank: int = 4
     lora_lr: float = 1e-4
@@ -74,7 +76,10 @@ class PriorsConfig:
         return "real" if ready else "proxy"
 
     def runtime(self, device: torch.device) -> PriorRuntime:
-        rt = PriorRuntime.for_device(device, self.accel)
+        accel = self.accel
+        if accel == "auto":
+            accel = "cudagraph" if torch.device(device).type == "cuda" else "eager"
+        rt = PriorRuntime.for_device(device, accel)
         if self.dtype == "auto":
             return rt
         return PriorRuntime(rt.device, getattr(torch, self.dtype), channels_last=rt.channels_last, accel=rt.accel)
@@ -173,10 +178,14 @@ class RealSuite(PriorSuite):
     weight_free = False
 
     def __init__(self, cfg: PriorsConfig, device: torch.device, object_id: str, reference_rgba: Tensor,
-                 roles: tuple[str, ...], vsd_roles: tuple[str, ...]) -> None:
-        runtime = cfg.runtime(device)
+                 roles: tuple[str, ...], vsd_roles: tuple[str, ...], models: Mapping[str, Any] | None = None) -> None:
+        """``models``: priors per role already built (benchmarks with random full-size networks);
+        by default they are loaded from the weights folder."""
         self.object_id = object_id
-        self.models = {role: ModelCache.get(role, cfg, runtime) for role in roles}
+        if models is None:
+            runtime = cfg.runtime(device)
+            models = {role: ModelCache.get(role, cfg, runtime) for role in roles}
+        self.models = {role: models[role] for role in roles}
         for model in self.models.values():
             model.set_reference(object_id, reference_rgba)
         settings = LoraSettings(rank=cfg.lora_rank, lr=cfg.lora_lr)

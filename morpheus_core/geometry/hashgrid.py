@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from morpheus_core.devices import compiled_for
+
 PRIMES = (1, 2654435761, 805459861)
 _INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation
 
@@ -138,43 +140,54 @@ def _axis_weights(frac: Tensor) -> Tensor:
     return torch.stack((1 - frac, frac), -1)
 
 
+def _encode(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:
+    cell, frac = _positions(x, tables)
+    idx = _row_indices(cell, tables)
+    weights = _corner_product(_axis_weights(frac), "mul").to(table.dtype)
+    out = (table[idx] * weights.unsqueeze(-1)).sum(-2) * level_mask.reshape(1, -1, 1).to(table.dtype)
+    return out.reshape(x.shape[0], -1)
+
+
+def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, grad_out: Tensor,
+                     want_x: bool, want_table: bool) -> tuple[Tensor | None, Tensor | None]:
+    cell, frac = _positions(x, tables)
+    idx = _row_indices(cell, tables)
+    g = grad_out.reshape(x.shape[0], level_mask.shape[0], -1) * level_mask.reshape(1, -1, 1).to(grad_out.dtype)
+    axis_w = _axis_weights(frac)
+    grad_table = None
+    if want_table:
+        weights = _corner_product(axis_w, "mul").to(g.dtype)
+        contrib = (g.unsqueeze(-2) * weights.unsqueeze(-1)).reshape(-1, table.shape[1])
+        grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib.to(table.dtype))
+    grad_x = None
+    if want_x:
+        corner_dot = (table[idx].to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
+        slope = torch.tensor([-1.0, 1.0], dtype=x.dtype, device=x.device).expand_as(axis_w)
+        grads = []
+        for d in range(3):
+            # ∂w/∂f_d: axis d contributes its slope (∓1), the other axes their weights.
+            per_axis = torch.where(torch.arange(3, device=x.device).reshape(1, 1, 3, 1) == d, slope, axis_w)
+            grads.append((corner_dot * _corner_product(per_axis, "mul")).sum(-1))  # (N, L)
+        grad_pos = torch.stack(grads, -1)
+        grad_x = (grad_pos * tables.scale.to(x.dtype).reshape(1, -1, 1)).sum(-2)
+    return grad_x, grad_table
+
+
 class _HashEncode(torch.autograd.Function):
+    """Forward and backward are pure tensor functions, compiled on CUDA (``compiled_for``)."""
+
     @staticmethod
     def forward(ctx, x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
-        cell, frac = _positions(x, tables)
-        idx = _row_indices(cell, tables)
-        weights = _corner_product(_axis_weights(frac), "mul").to(table.dtype)
-        out = (table[idx] * weights.unsqueeze(-1)).sum(-2) * level_mask.reshape(1, -1, 1).to(table.dtype)
         ctx.save_for_backward(x, table, level_mask)
         ctx.tables = tables
-        return out.reshape(x.shape[0], -1)
+        return compiled_for(_encode, x.device)(x, table, tables, level_mask)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, Tensor | None, None, None]:  # type: ignore[override]
         x, table, level_mask = ctx.saved_tensors
-        tables: _LevelTables = ctx.tables
-        cell, frac = _positions(x, tables)
-        idx = _row_indices(cell, tables)
-        g = grad_out.reshape(x.shape[0], level_mask.shape[0], -1) * level_mask.reshape(1, -1, 1).to(grad_out.dtype)
-        axis_w = _axis_weights(frac)
-        grad_table = None
-        if ctx.needs_input_grad[1]:
-            weights = _corner_product(axis_w, "mul").to(g.dtype)
-            contrib = (g.unsqueeze(-2) * weights.unsqueeze(-1)).reshape(-1, table.shape[1])
-            grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib.to(table.dtype))
-        grad_x = None
-        if ctx.needs_input_grad[0]:
-            corner_dot = (table[idx].to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
-            slope = torch.tensor([-1.0, 1.0], dtype=x.dtype, device=x.device).expand_as(axis_w)
-            grads = []
-            for d in range(3):
-                # ∂w/∂f_d: axis d contributes its slope (∓1), the other axes their weights.
-                per_axis = torch.where(
-                    torch.arange(3, device=x.device).reshape(1, 1, 3, 1) == d, slope, axis_w
-                )
-                grads.append((corner_dot * _corner_product(per_axis, "mul")).sum(-1))  # (N, L)
-            grad_pos = torch.stack(grads, -1)
-            grad_x = (grad_pos * tables.scale.to(x.dtype).reshape(1, -1, 1)).sum(-2)
+        kernel = compiled_for(_encode_backward, x.device)
+        grad_x, grad_table = kernel(x, table, ctx.tables, level_mask, grad_out.contiguous(),
+                                    bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1]))
         return grad_x, grad_table, None, None
 
 
