@@ -5,6 +5,10 @@
 # quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
 # priors: the CUDA prior tests and the full prior benchmark only.
 # quality: benchmarks/quality.py at the gpu size (QUALITY_ARGS picks parts and scenes), results -> $OUT.
+# speed: the paper-schedule benchmark (benchmarks/paper_speed.py); SPEED_RUNS lists "mode:batches" runs,
+#   e.g. "before:1 after:1,4"; carry outputs/gpu_refs (prepared on the CPU machine:
+#   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
+#   SPEED_TESTS=1 first runs the CUDA tests of the speed work. Results and profiles -> $OUT.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 set -uo pipefail
@@ -24,6 +28,20 @@ if [ "$mode" = stages ]; then
       --store outputs/gpu_ref > "$out/stage_speed_$p.log" 2>&1
   done
   tar czf "$out/results_h200.tgz" benchmarks/results/stage_speed_*h200*
+  exit 0
+fi
+if [ "$mode" = speed ]; then
+  if [ "${SPEED_TESTS:-0}" = 1 ]; then
+    MORPHEUS_TEST_DEVICE=cuda timeout 150 python -m pytest -q -p no:cacheprovider tests/test_cuda.py \
+      tests/test_hashgrid.py > "$out/pytest_cuda_speed.log" 2>&1
+    echo "pytest exit $?" >> "$out/pytest_cuda_speed.log"
+  fi
+  for run in ${SPEED_RUNS:-after:1,4,8,16}; do
+    m=${run%%:*}; b=${run#*:}
+    timeout ${SPEED_TIMEOUT:-400} python benchmarks/paper_speed.py --device cuda --mode "$m" --batches ${b//,/ } \
+      --profile --tag h200 --store outputs/gpu_refs --out "$out" ${SPEED_ARGS:-} > "$out/speed_$m.log" 2>&1
+    echo "exit $?" >> "$out/speed_$m.log"
+  done
   exit 0
 fi
 if [ "$mode" = quality ]; then  # QUALITY_ARGS, e.g. "--parts error_time --scenes mug"
