@@ -235,7 +235,27 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(tempfile.mkdtemp(prefix="paper_speed_"))
     t_start = time.perf_counter()
     rig = Rig(cfg, dev, refs, args.scale, work)
-    rows, profiles = [], []
+    rows: list[dict] = []
+    profiles: list[str] = []
+    schedule = {"nerf_fit": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
+                "texture_refine": cfg.texture.loop.steps}
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine()
+    stem = args.out / f"paper_speed_{args.mode}_{args.tag}"
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    def write() -> str:  # after every row: a call cut short by its time limit keeps what it measured
+        res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
+               "mode": args.mode, "accel": accel, "compiled": dev.type == "cuda" and mode["compile"] == "1",
+               "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
+               "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
+               "wall_s": round(time.perf_counter() - t_start, 1),
+               "command": "python benchmarks/paper_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])}
+        atomic_write_text(stem.with_suffix(".json"), json.dumps(res, indent=2) + "\n")
+        atomic_write_text(stem.with_suffix(".md"), to_markdown(res))
+        if profiles:
+            atomic_write_text(args.out / f"paper_profile_{args.mode}_{args.tag}.txt", "\n\n".join(profiles) + "\n")
+        return to_markdown(res)
+
     for stage in args.stages:
         for batch in sorted(args.batches):
             try:
@@ -249,22 +269,8 @@ def main(argv: list[str] | None = None) -> int:
                     torch.cuda.empty_cache()
             rows.append(row)
             print(json.dumps(row), flush=True)
-    schedule = {"nerf_fit": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
-                "texture_refine": cfg.texture.loop.steps}
-    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine()
-    res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
-           "mode": args.mode, "accel": accel, "compiled": dev.type == "cuda" and mode["compile"] == "1",
-           "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
-           "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
-           "wall_s": round(time.perf_counter() - t_start, 1),
-           "command": "python benchmarks/paper_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])}
-    stem = args.out / f"paper_speed_{args.mode}_{args.tag}"
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(res, indent=2) + "\n")
-    atomic_write_text(stem.with_suffix(".md"), to_markdown(res))
-    if profiles:
-        atomic_write_text(args.out / f"paper_profile_{args.mode}_{args.tag}.txt", "\n\n".join(profiles) + "\n")
-    print(to_markdown(res))
+            write()
+    print(write())
     shutil.rmtree(work, ignore_errors=True)
     return 0
 

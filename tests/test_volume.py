@@ -139,3 +139,23 @@ def test_nerf_render_backpropagates_to_grid_and_mlps(device: torch.device) -> No
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert field.encoding.table.grad.abs().sum() > 0
     assert out.depth[out.opacity > 0.5].min() > 1.0  # surface in front of the origin, behind the near plane
+
+
+def test_normals_only_at_visible_samples_match_normals_everywhere(device: torch.device) -> None:
+    """Skipping normals where a sample's compositing weight is < 1e-4 changes the rendered normal
+    by at most the skipped weight mass, and the normal-smoothness gradient stays essentially the same."""
+    field = small_nerf(3).to(device)
+    cams = sample_orbit(2, generator=torch.Generator().manual_seed(4)).to(device)
+    outs = {}
+    for threshold in (0.0, 1e-4):
+        cfg = VolumeRenderConfig(n_samples=96, stratified=False, with_normals=True, normal_weight_threshold=threshold)
+        field.zero_grad()
+        out = render_volume(field, cams, 24, 24, cfg)
+        out.normal.square().sum().backward()
+        grad = field.encoding.table.grad.clone()
+        outs[threshold] = (out.normal.detach(), grad, out.rgb.detach())
+    (n_all, g_all, rgb_all), (n_vis, g_vis, rgb_vis) = outs[0.0], outs[1e-4]
+    assert torch.equal(rgb_all, rgb_vis)  # colour and opacity do not depend on the normals
+    assert (n_all - n_vis).abs().max() < 96 * 1e-4 + 1e-6
+    assert n_all.abs().max() > 0.1  # the test renders real surfaces, not empty space
+    assert torch.nn.functional.cosine_similarity(g_all.flatten(), g_vis.flatten(), dim=0) > 0.99
