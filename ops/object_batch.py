@@ -130,7 +130,9 @@ class BatchTask:
             task.load_state(s)
         for gen, s in zip(self.generators, state["generators"], strict=True):
             gen.set_state(s)
-        self.bad_steps = list(state["bad_steps"])
+        # Counts only grow: a resume (fresh zeros) takes the checkpoint's, while the loop's restore of
+        # the last good state after bad steps in a row must not forget the steps sat out since.
+        self.bad_steps = [max(a, b) for a, b in zip(self.bad_steps, state["bad_steps"], strict=True)]
 
     def evaluate(self) -> dict[str, float]:
         return {f"{i}/{k}": v for i, t in enumerate(self.tasks) for k, v in t.evaluate().items()}
@@ -152,7 +154,9 @@ class StageJob:
 
     def run(self, checkpoint_dir: Path | None = None, progress: ProgressFn | None = None) -> StageResult:
         try:
-            return self.finish(run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress))
+            result = self.finish(run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress))
+            result.metrics["batch_size"] = 1  # every optimising manifest says how many photos shared its steps
+            return result
         finally:
             self.close()
 

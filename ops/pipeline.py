@@ -114,6 +114,9 @@ class PhotoRun:
         self.done: dict[str, Manifest] = {}
         self._plan: StagePlan | None = None
         self.outcome = PhotoOutcome(photo, key)
+        # The exception that stopped this photo: batch callers classify it (bad input or transient)
+        # the way a single-photo caller classifies what ``run`` raises.
+        self.error: Exception | None = None
         self.hash_photo: Callable[[Path], str] = file_sha256
         # Config hashes and prior resolution are the same for every photo with the same plan
         # decisions; a catalog-wide status check shares this between photos.
@@ -215,10 +218,12 @@ class PhotoRun:
         self.done[stage] = manifest
         return manifest
 
-    def fail(self, stage: str, exc: BaseException) -> None:
+    def fail(self, stage: str, exc: Exception) -> None:
         """Record that ``stage`` failed for this photo (its later stages do not run)."""
         log.error("%s: stage %s failed: %s", self.key, stage, exc)
-        log.debug("%s", traceback.format_exc())
+        # From the exception itself: a batch reports its photos' failures after leaving the handler.
+        log.debug("%s", "".join(traceback.format_exception(exc)))
+        self.error = exc
         self.outcome.error = f"{stage}: {type(exc).__name__}: {exc}"
         self.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, str(exc)))
 
@@ -456,6 +461,19 @@ def run_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineCon
         live = [r for r in runs if r.outcome.error is None and stage in r.stages]
         _run_stage_together(live, stage)
     return [r.outcome for r in runs]
+
+
+def run_stage_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineConfig, preset: str,
+                    stage: str, progress: ProgressFn | None = None) -> dict[str, StageOutcome | Exception]:
+    """One stage for several photos (``(photo, key)`` pairs) reading their inputs from the store;
+    those that must optimise run together as one batch (what a Dagster step over several photos
+    calls). Per key: the stage's outcome, or the exception that ``run_stage`` would have raised for
+    that photo alone. A batch is resumed from its checkpoints only when re-run with the same photos."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    runs = [PhotoRun(Path(photo), key, store, cfg, preset, None, progress, None) for photo, key in photos]
+    _run_stage_together(runs, stage)
+    return {r.key: r.error if r.error is not None else r.outcome.stages[-1] for r in runs}
 
 
 def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str, stage: str,

@@ -4,7 +4,9 @@ Each stage asset runs ``ops.pipeline.run_stage`` for every photo partition of it
 reports the store's manifest as metadata and the stage's QA checks (``ops.qa.CHECKS``) as asset
 check results. A step covering several photos (a backfill batch) keeps going past a failing
 photo, records what finished, then fails naming the photos that did not, so a retry redoes only
-those (finished ones are cached; interrupted ones resume from their checkpoints).
+those (finished ones are cached; interrupted ones resume from their checkpoints). In such a step
+the GPU stages optimise their photos together (``ops.pipeline.run_stage_batch``: one prior
+forward per step for all of them) unless ``MORPHEUS_BATCH_TOGETHER=0``.
 """
 
 
@@ -96,17 +98,29 @@ def _logging_progress(context: AssetExecutionContext, every_s: float = 15.0) -> 
     return report
 
 
+def _failure(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, key: str, exc: Exception,
+             max_retries: int) -> Exception:
+    """What a photo's failed stage raises. Bad input cannot be fixed by retrying: it is recorded in
+    the catalog at once and becomes a non-retryable ``dg.Failure``; anything else may be transient,
+    so it stays as it is and reaches the catalog only on the last attempt."""
+    reason = f"{stage}: {type(exc).__name__}: {exc}"
+    if isinstance(exc, PERMANENT):
+        morpheus.record(key, context.run.run_id, {stage: "failed"}, reason)
+        return dg.Failure(description=f"{key}: {type(exc).__name__}: {exc}", allow_retries=False)
+    if context.retry_number >= max_retries:
+        morpheus.record(key, context.run.run_id, {stage: "failed"}, reason)
+    return exc
+
+
 def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, key: str,
              max_retries: int) -> StageOutcome:
     try:
         return morpheus.run_stage(key, stage, _logging_progress(context))
-    except PERMANENT as exc:
-        morpheus.record(key, context.run.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
-        raise dg.Failure(description=f"{key}: {type(exc).__name__}: {exc}", allow_retries=False) from exc
     except Exception as exc:
-        if context.retry_number >= max_retries:  # the last attempt: the catalog learns why this photo failed
-            morpheus.record(key, context.run.run_id, {stage: "failed"}, f"{stage}: {type(exc).__name__}: {exc}")
-        raise
+        failure = _failure(context, morpheus, stage, key, exc, max_retries)
+        if failure is exc:
+            raise
+        raise failure from exc
 
 
 def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.AssetsDefinition:
@@ -137,25 +151,48 @@ def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.A
                                                    description=c.message, metadata=check_metadata(c))
                                for c in checks])
             return
-        yield from _batch(context, morpheus, spec, keys, settings.max_retries)
+        yield from _batch(context, morpheus, spec, keys, settings.max_retries, spec.gpu and settings.batch_together)
 
     return stage_asset
 
 
+def _stage_outcomes(context: AssetExecutionContext, morpheus: MorpheusResource, stage: str, keys: list[str],
+                    together: bool) -> Iterator[tuple[str, StageOutcome | Exception]]:
+    """Per photo of the step: its stage outcome, or the exception that stopped it."""
+    if together:
+        context.log.info(f"{len(keys)} photos optimised together: {stage} ({', '.join(keys)})")
+        results: dict[str, StageOutcome | Exception]
+        try:
+            results = morpheus.run_stage_batch(keys, stage, _logging_progress(context))
+        except Exception as exc:  # what the photos share failed (configuration, store): all of them
+            results = dict.fromkeys(keys, exc)
+        yield from results.items()
+        return
+    for i, key in enumerate(keys, 1):
+        context.log.info(f"[{i}/{len(keys)}] {key}: {stage}")
+        try:
+            yield key, morpheus.run_stage(key, stage, _logging_progress(context))
+        except Exception as exc:
+            yield key, exc
+
+
 def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: StageAsset,
-           keys: list[str], max_retries: int) -> Iterator[Any]:
-    """A step over several photos: one photo's failure does not stop the others."""
+           keys: list[str], max_retries: int, together: bool) -> Iterator[Any]:
+    """A step over several photos (run ``together`` as one batch, or one after another): one
+    photo's failure does not stop the others."""
     done: dict[str, tuple[StageOutcome, list[QACheck]]] = {}
     failed: dict[str, str] = {}
-    for i, key in enumerate(keys, 1):
-        context.log.info(f"[{i}/{len(keys)}] {key}: {spec.stage}")
+    retry = False  # whether any failure might pass on a retry (bad input never does)
+    for key, outcome in _stage_outcomes(context, morpheus, spec.stage, keys, together):
         try:
-            outcome = _run_one(context, morpheus, spec.stage, key, max_retries)
+            if isinstance(outcome, Exception):
+                raise _failure(context, morpheus, spec.stage, key, outcome, max_retries)
             done[key] = (outcome, _checks(outcome, morpheus, key))
             if spec.stage == "qa":
                 morpheus.record(key, context.run.run_id, {spec.stage: outcome.status})
         except Exception as exc:  # recorded per photo; the step fails below
             failed[key] = f"{type(exc).__name__}: {exc}"
+            retry = retry or not (isinstance(exc, dg.Failure) and not exc.allow_retries)
             context.log.error(f"{key}: {spec.stage} failed: {failed[key]}")
     asset_key = dg.AssetKey(spec.name)
     for key, (_, checks) in done.items():
@@ -171,7 +208,7 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
                 metadata=stage_metadata(outcome, morpheus.store().stage_dir(key, spec.stage)))
         raise dg.Failure(description=f"{spec.name}: {len(failed)} of {len(keys)} photos failed: "
                          + "; ".join(f"{k}: {v}" for k, v in failed.items()),
-                         metadata={"failed": dg.MetadataValue.json(failed)})
+                         metadata={"failed": dg.MetadataValue.json(failed)}, allow_retries=retry)
     table = ["| photo | status | wall s | ref PSNR | verdict / checks |", "|---|---|---|---|---|"]
     for key, (outcome, checks) in done.items():
         m = outcome.manifest

@@ -14,7 +14,7 @@ from assets_store.store import Store
 from ops import photo_folder
 from ops.catalog_rows import photo_row
 from ops.optimise import ProgressFn
-from ops.pipeline import StageOutcome, photo_status, run_stage
+from ops.pipeline import StageOutcome, photo_status, run_stage, run_stage_batch
 from ops.presets import PipelineConfig, preset
 
 
@@ -49,6 +49,22 @@ class MorpheusResource(ConfigurableResource):
     def run_stage(self, key: str, stage: str, progress: ProgressFn | None = None) -> StageOutcome:
         return run_stage(self.photo_path(key), self.store(), self.pipeline_config(), self.preset, key, stage,
                          progress=progress)
+
+    def run_stage_batch(self, keys: list[str], stage: str,
+                        progress: ProgressFn | None = None) -> dict[str, StageOutcome | Exception]:
+        """``stage`` for several photos together (``ops.pipeline.run_stage_batch``); per key its outcome
+        or the exception that stopped it (``UnknownPhotoError`` for a photo gone from the folder)."""
+        names = self.photos()
+        out: dict[str, StageOutcome | Exception] = {}
+        present = []
+        for key in keys:
+            try:
+                present.append((self.photo_path(key, names), key))
+            except UnknownPhotoError as exc:
+                out[key] = exc
+        if present:
+            out.update(run_stage_batch(present, self.store(), self.pipeline_config(), self.preset, stage, progress))
+        return {key: out[key] for key in keys}
 
     def record(self, key: str, run_id: str, statuses: dict[str, str], failure: str | None = None) -> None:
         """Append this photo's catalog row (after its QA, or when a stage failed for good)."""

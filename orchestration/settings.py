@@ -4,7 +4,9 @@
 (draft | standard | paper), ``MORPHEUS_SET`` (pipeline overrides, ``;``-separated ``key=value``),
 ``MORPHEUS_SENSOR_MAX_NEW`` (photos added per sensor tick), ``MORPHEUS_SETTLE_S`` (seconds a file
 must be untouched before it counts as uploaded), ``MORPHEUS_NIGHTLY_CRON``, ``MORPHEUS_TIMEZONE``,
-``MORPHEUS_BATCH`` (photos per backfill run), ``MORPHEUS_RETRIES``, ``MORPHEUS_RETRY_DELAY_S``,
+``MORPHEUS_BATCH`` (photos per backfill run), ``MORPHEUS_BATCH_TOGETHER`` (``1``, the default: a
+step of a GPU stage over several photos optimises them together, one prior forward per step for
+all; ``0``: one after another), ``MORPHEUS_RETRIES``, ``MORPHEUS_RETRY_DELAY_S``,
 ``MORPHEUS_EXECUTOR`` (``in_process`` or ``multiprocess``).
 """
 
@@ -28,6 +30,7 @@ class OrchestrationSettings:
     nightly_cron: str = "0 2 * * *"
     timezone: str = "UTC"
     backfill_batch: int = 8
+    batch_together: bool = True
     max_retries: int = 2
     retry_delay_s: float = 30.0
     executor: str = "in_process"
@@ -54,6 +57,14 @@ class OrchestrationSettings:
             except ValueError as exc:
                 raise ValueError(f"{name}={raw!r}: expected {cast.__name__}") from exc
 
+        def flag(name: str, default: bool) -> bool:
+            raw = env.get(name, "").strip().lower()
+            if raw == "":
+                return default
+            if raw not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                raise ValueError(f"{name}={raw!r}: expected 1 or 0")
+            return raw in ("1", "true", "yes", "on")
+
         overrides = tuple(p.strip() for p in env.get("MORPHEUS_SET", "").split(";") if p.strip())
         return cls(
             photo_dir=str(Path(str(get("MORPHEUS_PHOTO_DIR", d.photo_dir, str))).absolute()),
@@ -66,6 +77,7 @@ class OrchestrationSettings:
             nightly_cron=str(get("MORPHEUS_NIGHTLY_CRON", d.nightly_cron, str)),
             timezone=str(get("MORPHEUS_TIMEZONE", d.timezone, str)),
             backfill_batch=int(get("MORPHEUS_BATCH", d.backfill_batch, int)),
+            batch_together=flag("MORPHEUS_BATCH_TOGETHER", d.batch_together),
             max_retries=int(get("MORPHEUS_RETRIES", d.max_retries, int)),
             retry_delay_s=float(get("MORPHEUS_RETRY_DELAY_S", d.retry_delay_s, float)),
             executor=str(get("MORPHEUS_EXECUTOR", d.executor, str)),

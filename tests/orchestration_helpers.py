@@ -33,14 +33,18 @@ def settings(root: Path, **changes: object) -> OrchestrationSettings:
     return OrchestrationSettings(**{**base, **changes})
 
 
-def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, keys: list[str]) -> dg.ExecuteInProcessResult:
-    """One run over ``keys``: a single partition, or a batch (what a multi-run backfill launches)."""
+def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, keys: list[str],
+            assets: list[str] | None = None) -> dg.ExecuteInProcessResult:
+    """One run over ``keys``: a single partition, or a batch (what a multi-run backfill launches);
+    every asset, or only ``assets``."""
     instance.add_dynamic_partitions(PHOTOS, keys)
     job = defs.resolve_job_def(JOB)
+    selection = None if assets is None else [dg.AssetKey(a) for a in assets]
     if len(keys) == 1:
-        return job.execute_in_process(partition_key=keys[0], instance=instance, raise_on_error=False)
+        return job.execute_in_process(partition_key=keys[0], instance=instance, raise_on_error=False,
+                                      asset_selection=selection)
     tags = {"dagster/asset_partition_range_start": keys[0], "dagster/asset_partition_range_end": keys[-1]}
-    return job.execute_in_process(tags=tags, instance=instance, raise_on_error=False)
+    return job.execute_in_process(tags=tags, instance=instance, raise_on_error=False, asset_selection=selection)
 
 
 def materializations(result: dg.ExecuteInProcessResult) -> dict[tuple[str, str | None], dict]:

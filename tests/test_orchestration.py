@@ -171,13 +171,15 @@ def test_definitions_shape(deployment) -> None:
 
 def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    """A backfill batch of two photos; one crashes half-way through its NeRF stage. The other photo
-    finishes the stage; re-executing from the failure resumes the crashed one at its checkpoint."""
+    """A backfill batch of two photos run one after the other (MORPHEUS_BATCH_TOGETHER=0); one
+    crashes half-way through its NeRF stage. The other photo finishes the stage; re-executing from
+    the failure resumes the crashed one at its checkpoint."""
     photo_folder(tmp_path, ["bottle.jpg", KEY])
-    defs = build(tmp_path)
+    defs = build(tmp_path, batch_together=False)
     bad, good = "bottle.jpg", KEY
     fault_at = 5  # checkpoints every 2 steps: the newest one before the fault is at step 4
     monkeypatch.setenv("MORPHEUS_TEST_ROOT", str(tmp_path))
+    monkeypatch.setenv("MORPHEUS_BATCH_TOGETHER", "0")
     home = tmp_path / "home"
     home.mkdir()
     with dg.instance_for_test(temp_dir=str(home)) as instance:
@@ -216,6 +218,34 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
             assert instance.get_materialized_partitions(dg.AssetKey(asset)) >= {bad, good}, asset
 
 
+def test_a_gpu_stage_step_optimises_its_photos_together(tmp_path: Path) -> None:
+    """A backfill batch of three photos at the NeRF stage: the two with a reference run as one batch
+    (one prior forward per step for both); the third, whose reference is missing, fails alone and
+    at once (bad input: no retry), and the catalog records why."""
+    keys = ["bottle.jpg", KEY, "box.jpg"]
+    photo_folder(tmp_path, keys)
+    defs = build(tmp_path, max_retries=1)
+    home = tmp_path / "home"
+    home.mkdir()
+    with dg.instance_for_test(temp_dir=str(home)) as instance:
+        assert run_job(defs, instance, keys[:2], assets=["reference"]).success
+        result = run_job(defs, instance, keys, assets=["nerf_field"])
+        assert not result.success
+        assert not [e for e in result.all_events if e.event_type_value == "STEP_UP_FOR_RETRY"]
+        store, mats = Store(tmp_path / "store"), materializations(result)
+        for key in keys[:2]:
+            assert manifest(store, key, "nerf_fit").metrics["batch_size"] == 2
+            assert mats[("nerf_field", key)]["metrics"].value["batch_size"] == 2
+        assert ("nerf_field", "box.jpg") not in mats and store.read_manifest("box.jpg", "nerf_fit") is None
+        assert {e.partition for e in check_evaluations(result)} == set(keys[:2])
+        failure = next(e for e in result.all_events if e.event_type_value == "STEP_FAILURE")
+        error = failure.event_specific_data.error.to_string()
+        assert "1 of 3 photos failed" in error and "box.jpg" in error and "MissingUpstreamError" in error
+        (row,) = [r for r in Catalog(store.catalog_dir).read().to_pylist() if r["run_id"] == result.run_id]
+        assert row["photo_key"] == "box.jpg" and row["status"] == "failed"
+        assert "MissingUpstreamError" in row["failure_reason"]
+
+
 def _tiny_job() -> dg.JobDefinition:
     """The job for ``execute_job`` (it must be importable by name): settings from the environment
     the failing test set up, i.e. the same temporary folder as the first run."""
@@ -224,7 +254,8 @@ def _tiny_job() -> dg.JobDefinition:
 
     root = Path(os.environ["MORPHEUS_TEST_ROOT"])
     executor = os.environ.get("MORPHEUS_EXECUTOR", "in_process")
-    return build_definitions(settings=settings(root, executor=executor)).resolve_job_def(JOB)
+    together = os.environ.get("MORPHEUS_BATCH_TOGETHER", "1") != "0"
+    return build_definitions(settings=settings(root, executor=executor, batch_together=together)).resolve_job_def(JOB)
 
 
 def test_definitions_validate_with_the_dagster_command(tmp_path: Path) -> None:
