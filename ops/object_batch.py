@@ -161,10 +161,14 @@ class StageJob:
             self.close()
 
 
+_PER_STEP = ("step", "wall_s", "ok")
+
+
 def object_result(result: LoopResult, index: int, bad_steps: int) -> LoopResult:
-    """Object ``index``'s view of a batch's loop result: its own log columns, the shared ones."""
+    """Object ``index``'s view of a batch's loop result: its own log columns, and the shared ones —
+    the loss terms summed over the batch are renamed ``batch_…`` so nobody reads them as this object's."""
     prefix = f"{index}/"
-    history = [{**{k: v for k, v in row.items() if "/" not in k},
+    history = [{**{(k if k in _PER_STEP else f"batch_{k}"): v for k, v in row.items() if "/" not in k},
                 **{k[len(prefix):]: v for k, v in row.items() if k.startswith(prefix)}} for row in result.history]
     guards = dataclasses.replace(result.guards, bad_step=result.guards.bad_step + bad_steps)
     return LoopResult(history, guards, result.resumed_from, result.steps_run, result.wall_s)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from assets_store.runlog import read_runlog
 from assets_store.store import Store
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.frequency import BandMask
@@ -63,6 +64,13 @@ def test_a_batch_gives_the_outputs_of_one_by_one_runs(single: Store, batched: St
             assert manifest(single, key, stage).metrics["batch_size"] == 1
     # The runs optimised something: photos differ, so identical outputs are not a constant.
     assert output_hashes(batched, "mug.jpg", "nerf_fit") != output_hashes(batched, "box.jpg", "nerf_fit")
+    # Each photo's run log: its own reference PSNR curve, equal to its single run's; the batch's
+    # summed loss terms are labelled as such.
+    for key in KEYS:
+        alone = read_runlog(single.stage_dir(key, "dmtet") / "runlog.parquet")
+        together = read_runlog(batched.stage_dir(key, "dmtet") / "runlog.parquet")
+        assert [r["ref_psnr"] for r in together] == [r["ref_psnr"] for r in alone]
+        assert "batch_loss" in together[-1] and "loss" not in together[-1] and "mask_bce" in together[-1]
 
 
 def _guidance_case() -> tuple[GuidanceConfig, dict[str, PriorBinding]]:
