@@ -217,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=6)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting of the preset, as for `morpheus3d run` (A/B runs of one lever)")
     p.add_argument("--profile", action="store_true", help="profile 3 steps of every batch-1 row")
     p.add_argument("--store", type=Path, default=ROOT / "outputs" / "gpu_refs", help="where references are prepared")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
@@ -227,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ["MORPHEUS_COMPILE"] = mode["compile"]
     dev = torch.device(args.device)
     accel = mode["accel"] if dev.type == "cuda" else "eager"
-    cfg = preset(args.preset, [f"device={args.device}", "priors.kind=real", f"priors.accel={accel}"])
+    cfg = preset(args.preset, [f"device={args.device}", "priors.kind=real", f"priors.accel={accel}", *args.overrides])
     if dev.type == "cuda":
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True

@@ -110,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
     ap.add_argument("--scenes", default="", help="comma-separated scene names for the ablations and error against "
                                                  "time (default: the size's)")
+    ap.add_argument("--schedules", default="", help="comma-separated labels of the size's timing schedules to run "
+                                                    "(default: all)")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--work", type=Path, default=ROOT / "outputs" / "bench_quality")
     ap.add_argument("--results", type=Path, default=ROOT / "benchmarks" / "results")
@@ -148,12 +150,16 @@ def main(argv: list[str] | None = None) -> int:
     if "error_time" in parts:
         t0 = time.perf_counter()
         timing_scenes = [scenes[n] for n in timing_names]
-        records = run_error_time(timing_scenes, list(size.timing), args.device, work, size.eval)
+        wanted = [s for s in args.schedules.split(",") if s]
+        timing = [s for s in size.timing if not wanted or s.label in wanted]
+        if not timing:
+            ap.error(f"--schedules {args.schedules!r} matches none of {[s.label for s in size.timing]}")
+        records = run_error_time(timing_scenes, timing, args.device, work, size.eval)
         plot = plot_error_time(records, args.results / f"error_vs_time_{tag}.png",
                                f"Error against run time ({common['machine']})")
         _write(args.results, f"error_vs_time_{tag}", {
             **common, "title": "Error against run time", "wall_s": time.perf_counter() - t0,
-            "schedules": [asdict(s) for s in size.timing], "scenes": list(timing_names), "records": records,
+            "schedules": [asdict(s) for s in timing], "scenes": list(timing_names), "records": records,
             "about": _ABOUT_TIME.format(scenes=", ".join(timing_names), plot=plot.name)},
             error_time_markdown(records))
     if "stability" in parts:

@@ -159,3 +159,38 @@ def test_normals_only_at_visible_samples_match_normals_everywhere(device: torch.
     assert (n_all - n_vis).abs().max() < 96 * 1e-4 + 1e-6
     assert n_all.abs().max() > 0.1  # the test renders real surfaces, not empty space
     assert torch.nn.functional.cosine_similarity(g_all.flatten(), g_vis.flatten(), dim=0) > 0.99
+
+
+def test_training_renders_skip_samples_behind_opaque_surfaces(device: torch.device,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """With gradients on, samples whose transmittance is below 1e-4 are not evaluated: the render
+    and the gradients match rendering every sample, and far fewer samples reach the field."""
+    from morpheus_core.render import volume
+
+    field = small_nerf(5).to(device)
+    cams = sample_orbit(2, generator=torch.Generator().manual_seed(6)).to(device)
+    counts: list[int] = []
+    real_query = volume._query
+
+    def counting(field_, points, keep, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
+        if not kwargs.get("density_only"):
+            counts.append(int(keep.sum()))
+        return real_query(field_, points, keep, *args, **kwargs)
+
+    monkeypatch.setattr(volume, "_query", counting)
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=32, density_threshold=1e-3), field.bbox_radius).to(device)
+    grid.refresh(field, torch.Generator().manual_seed(8))
+    results = {}
+    for threshold in (0.0, 1e-4):
+        cfg = VolumeRenderConfig(n_samples=96, stratified=False, with_normals=False, transmittance_threshold=threshold)
+        field.zero_grad()
+        out = render_volume(field, cams, 24, 24, cfg, occupancy=grid)
+        weights = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(7)).to(device)
+        ((out.rgb * weights).sum() + out.opacity.sum()).backward()
+        results[threshold] = (out.rgb.detach(), out.opacity.detach(), field.encoding.table.grad.clone(),
+                              field.density_mlp[0].weight.grad.clone())
+    full, culled = results[0.0], results[1e-4]
+    assert counts[1] < 0.95 * counts[0], counts  # samples behind the opaque core are skipped
+    assert (full[0] - culled[0]).abs().max() < 1e-3 and (full[1] - culled[1]).abs().max() < 1e-3
+    for a, b in zip(full[2:], culled[2:], strict=True):
+        assert torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0) > 0.999

@@ -15,6 +15,7 @@ a fraction of its box.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -39,14 +40,19 @@ class VolumeRenderConfig:
     # normal is its weight (measured on an H200: normals were 6/7 of a NeRF step's encoder work).
     # 0 computes them everywhere.
     normal_weight_threshold: float = 1e-4
+    # Training renders first probe density without gradients, then evaluate (and backpropagate
+    # through) only samples whose transmittance still exceeds this: what lies behind an opaque
+    # surface changes the image by less than it, and its gradient is scaled by it. 0 turns it off.
+    transmittance_threshold: float = 1e-4
 
     def __post_init__(self) -> None:
         if self.n_samples < 1 or self.chunk_points < 1:
             raise ValueError("n_samples and chunk_points must be ≥ 1")
         if self.max_density <= 0:
             raise ValueError("max_density must be positive")
-        if not 0.0 <= self.normal_weight_threshold < 1.0:
-            raise ValueError(f"normal_weight_threshold must be in [0, 1), got {self.normal_weight_threshold}")
+        for name in ("normal_weight_threshold", "transmittance_threshold"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -122,7 +128,7 @@ def ray_box(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tensor, Tenso
 
 
 def _query(
-    field: RadianceField, points: Tensor, keep: Tensor, with_normals: bool, chunk: int
+    field: RadianceField, points: Tensor, keep: Tensor, with_normals: bool, chunk: int, density_only: bool = False
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """Evaluate the field only at ``keep`` points (in chunks); zeros elsewhere."""
     n = points.shape[0]
@@ -132,12 +138,24 @@ def _query(
     index = keep.nonzero().squeeze(-1)
     if index.numel() == 0:
         return density, albedo, normal
+    if density_only:
+        values = torch.cat([field.density(points[i]).to(points.dtype) for i in index.split(chunk)])
+        return density.index_put((index,), values), albedo, normal
     samples: list[FieldSample] = [field.query(points[i], with_normals) for i in index.split(chunk)]
     density = density.index_put((index,), torch.cat([s.density.to(points.dtype) for s in samples]))
     albedo = albedo.index_put((index,), torch.cat([s.albedo.to(points.dtype) for s in samples]))
     if normal is not None:
         normal = normal.index_put((index,), torch.cat([s.normal.to(points.dtype) for s in samples]))  # type: ignore[union-attr]
     return density, albedo, normal
+
+
+@torch.no_grad()
+def _visible(field: RadianceField, points: Tensor, keep: Tensor, step: Tensor, config: VolumeRenderConfig) -> Tensor:
+    """``keep`` (R, S) without the samples whose transmittance is already below the threshold."""
+    density, _, _ = _query(field, points, keep.reshape(-1), False, config.chunk_points, density_only=True)
+    tau = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(keep.shape) * step
+    before = torch.cumsum(tau, -1) - tau
+    return keep & (before < -math.log(config.transmittance_threshold))
 
 
 def _background(background: Tensor | float | tuple[float, float, float], like: Tensor, batch: int) -> Tensor:
@@ -176,6 +194,8 @@ def render_volume(
     if occupancy is not None:
         keep = keep & occupancy.occupied(points)
     flat = points.reshape(-1, 3)
+    if config.transmittance_threshold > 0 and torch.is_grad_enabled():
+        keep = _visible(field, flat, keep, step, config)
     density, albedo, _ = _query(field, flat, keep.reshape(-1), False, config.chunk_points)
     density = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(-1, s)
     tau = density * step
