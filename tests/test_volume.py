@@ -163,7 +163,7 @@ def test_normals_only_at_visible_samples_match_normals_everywhere(device: torch.
 
 def test_training_renders_skip_samples_behind_opaque_surfaces(device: torch.device,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
-    """With gradients on, samples whose transmittance is below 1e-4 are not evaluated: the render
+    """With the option on, training renders skip samples whose transmittance is below 1e-4: the render
     and the gradients match rendering every sample, and far fewer samples reach the field."""
     from morpheus_core.render import volume
 
