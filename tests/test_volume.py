@@ -172,7 +172,7 @@ def test_training_renders_skip_samples_behind_opaque_surfaces(device: torch.devi
     counts: list[int] = []
     real_query = volume._query
 
-    def counting(field_, points, keep, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
+    def counting(field_, points, keep, *args, **kwargs):
         if not kwargs.get("density_only"):
             counts.append(int(keep.sum()))
         return real_query(field_, points, keep, *args, **kwargs)
