@@ -167,7 +167,7 @@ class PhotoRun:
             self.memo[key] = config_hash(json.loads(json.dumps(to_dict(spec.config), default=str)))
         return Fingerprint(inputs=spec.inputs, config_hash=self.memo[key], code_version=CODE_VERSIONS[stage])
 
-    def cached(self, stage: str, spec: StageSpec, fp: Fingerprint) -> Manifest | None:
+    def cached(self, stage: str, fp: Fingerprint) -> Manifest | None:
         """The finished output matching ``fp``, recorded as this run's output of ``stage``."""
         cached = self.store.lookup(self.key, stage, fp)
         if cached is not None:
@@ -184,9 +184,11 @@ class PhotoRun:
         """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
         spec = self.spec(stage)
         fp = self.fingerprint(stage, spec)
-        cached = self.cached(stage, spec, fp)
-        if cached is not None:
-            return cached
+        cached = self.cached(stage, fp)
+        return cached if cached is not None else self.execute(stage, spec, fp)
+
+    def execute(self, stage: str, spec: StageSpec, fp: Fingerprint) -> Manifest:
+        """Make ``stage``'s output (no cache lookup), resuming from its checkpoint; raises on failure."""
         ckpt = self.checkpoint_path(stage, spec, fp)
         resumed = ckpt.is_dir() and any(ckpt.iterdir())
         start = time.perf_counter()
@@ -392,18 +394,18 @@ def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
         try:
             spec = run.spec(stage)
             fp = run.fingerprint(stage, spec)
-            if run.cached(stage, spec, fp) is not None:
+            if run.cached(stage, fp) is not None:
                 continue
             if spec.start is None:
-                run.run(stage)
+                run.execute(stage, spec, fp)
             else:
                 pending.append((run, spec, fp))
         except Exception as exc:
             run.fail(stage, exc)
     if len(pending) == 1:
-        run = pending[0][0]
+        run, spec, fp = pending[0]
         try:
-            run.run(stage)
+            run.execute(stage, spec, fp)
         except Exception as exc:
             run.fail(stage, exc)
         return
