@@ -90,6 +90,31 @@ def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Pa
     return records
 
 
+MAIN_ROWS = ("base", "full_pass_2d", "ours")
+
+
+def seed_spread(by_seed: dict[int, list[dict[str, Any]]], metric: str,
+                rows: tuple[str, ...] = MAIN_ROWS) -> dict[str, dict[str, Any]]:
+    """Per row: the mean over scenes for each pipeline seed, their mean and range (max − min); per
+    claimed margin (ours − base, ours − full pass): the same, so a margin can be set against the spread."""
+    means = {seed: mean_by_row(recs) for seed, recs in by_seed.items()}
+    out: dict[str, dict[str, Any]] = {}
+
+    def summary(values: list[float]) -> dict[str, Any]:
+        return {"per_seed": values, "mean": sum(values) / len(values), "range": max(values) - min(values)}
+
+    for row in rows:
+        values = [m[row][metric] for m in means.values() if m.get(row, {}).get(metric) is not None]
+        if values:
+            out[row] = summary(values)
+    for other in rows[:-1]:
+        values = [m["ours"][metric] - m[other][metric] for m in means.values()
+                  if m.get("ours", {}).get(metric) is not None and m.get(other, {}).get(metric) is not None]
+        if values:
+            out[f"ours − {other}"] = summary(values)
+    return out
+
+
 def mean_by_row(records: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
     """Each row's metrics averaged over the scenes where it finished."""
     out: dict[str, dict[str, float | None]] = {}

@@ -15,10 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import multiprocessing
 import platform
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write_text
-from benchmarks.ablations import run_ablations
+from benchmarks.ablations import MAIN_ROWS, ROWS, run_ablations
 from benchmarks.error_time import run_error_time
 from benchmarks.oracle import OracleConfig
 from benchmarks.quality_report import (
@@ -34,6 +37,7 @@ from benchmarks.quality_report import (
     error_time_markdown,
     per_scene_markdown,
     plot_error_time,
+    seed_spread_markdown,
     stability_markdown,
 )
 from benchmarks.scene_eval import EvalConfig
@@ -104,6 +108,27 @@ def _write(results: Path, stem: str, payload: dict[str, Any], markdown: str) -> 
     atomic_write_text(results / f"{stem}.md", f"# {payload['title']}\n\n{head}{payload['about']}\n\n{markdown}")
 
 
+def _worker_init(threads: int) -> None:
+    torch.set_num_threads(threads)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    logging.getLogger("morpheus3d.bench").setLevel(logging.INFO)
+    for noisy in ("morpheus3d", "morpheus3d.pipeline"):
+        logging.getLogger(noisy).setLevel(logging.ERROR)
+
+
+def run_calls(calls: list[tuple[Callable[..., list[dict[str, Any]]], tuple[Any, ...]]],
+              jobs: int) -> list[list[dict[str, Any]]]:
+    """Each ``fn(*args)`` of ``calls``, in ``jobs`` processes at once when > 1 (scenes are independent:
+    each has its own keys in the store, so results do not depend on it); results in call order."""
+    if jobs <= 1 or len(calls) <= 1:
+        return [fn(*a) for fn, a in calls]
+    threads = max(1, torch.get_num_threads() // jobs)
+    with ProcessPoolExecutor(min(jobs, len(calls)), mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_worker_init, initargs=(threads,)) as pool:
+        futures = [pool.submit(fn, *a) for fn, a in calls]
+        return [f.result() for f in futures]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--size", choices=sorted(SIZES), default="cpu")
@@ -115,7 +140,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--work", type=Path, default=ROOT / "outputs" / "bench_quality")
     ap.add_argument("--results", type=Path, default=ROOT / "benchmarks" / "results")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="the scenes' seed")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every schedule of the run (one configuration for all scenes)")
+    ap.add_argument("--tag", default="", help="suffix of the result files (e.g. for a --set variant)")
+    ap.add_argument("--jobs", type=int, default=1, help="scenes run in this many processes at once (the CPU threads "
+                                                        "are shared out between them); results are the same")
+    ap.add_argument("--ablation-seeds", default="0,1,2",
+                    help="pipeline seeds for the main ablation rows (base, full pass, ours): the first runs every row, "
+                         "the others those three, for the spread over seeds")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     for noisy in ("morpheus3d", "morpheus3d.pipeline"):
@@ -128,25 +161,43 @@ def main(argv: list[str] | None = None) -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda but no CUDA device is visible")
     size = SIZES[args.size]
+    if args.set:
+        def extend(s: Schedule) -> Schedule:
+            return replace(s, overrides=(*s.overrides, *args.set))
+        size = replace(size, ablation=extend(size.ablation), timing=tuple(extend(s) for s in size.timing),
+                       stability=extend(size.stability))
     chosen = tuple(s for s in args.scenes.split(",") if s)
     names, timing_names = chosen or size.scenes, chosen or size.timing_scenes
     scenes = {s.name: s for s in make_scenes(args.seed, tuple(dict.fromkeys(
         (*names, *timing_names, size.stability_scene))))}
     tag = args.size if args.device == "cpu" or args.size == "gpu" else f"{args.size}_{args.device}"
+    tag += f"_{args.tag}" if args.tag else ""
     common = {"machine": machine(args.device), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
               "command": "python -m benchmarks.quality " + " ".join(argv if argv is not None else sys.argv[1:]),
               "size": args.size, "device": args.device, "seed": args.seed, "eval": asdict(size.eval),
-              "oracle": OracleConfig().describe()}
+              "oracle": OracleConfig().describe(), "overrides": list(args.set)}
     work = args.work / tag
     if "ablations" in parts:
         t0 = time.perf_counter()
-        records = run_ablations([scenes[n] for n in names], size.ablation, args.device, work, size.eval)
+        seeds = [int(s) for s in args.ablation_seeds.split(",") if s]
+        calls = []
+        for i, seed in enumerate(seeds):
+            schedule = size.ablation if seed == 0 else replace(
+                size.ablation, label=f"{size.ablation.label}-seed{seed}",
+                overrides=(*size.ablation.overrides, f"seed={seed}"))
+            rows = ROWS if i == 0 else tuple(r for r in ROWS if r.name in MAIN_ROWS)
+            calls += [(run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, rows)) for n in names]
+        results = iter(run_calls(calls, args.jobs))
+        by_seed = {seed: [r for _ in names for r in next(results)] for seed in seeds}
+        records = by_seed[seeds[0]]
         _write(args.results, f"quality_ablations_{tag}", {
             **common, "title": "Ablations on synthetic scenes with oracle priors", "wall_s": time.perf_counter() - t0,
             "schedule": asdict(size.ablation), "scenes": list(names), "records": records,
+            "seed_records": {str(k): v for k, v in by_seed.items()},
             "about": _ABOUT_ABLATIONS.format(schedule=size.ablation, scenes=", ".join(names),
                                              oracle=common["oracle"], eval=size.eval)},
-            ablation_markdown(records) + "\n### Per scene\n\n" + per_scene_markdown(records))
+            ablation_markdown(records) + "\n### Spread over pipeline seeds\n\n" + seed_spread_markdown(by_seed)
+            + "\n### Per scene\n\n" + per_scene_markdown(records))
     if "error_time" in parts:
         t0 = time.perf_counter()
         timing_scenes = [scenes[n] for n in timing_names]
@@ -154,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
         timing = [s for s in size.timing if not wanted or s.label in wanted]
         if not timing:
             ap.error(f"--schedules {args.schedules!r} matches none of {[s.label for s in size.timing]}")
-        records = run_error_time(timing_scenes, timing, args.device, work, size.eval)
+        calls = [(run_error_time, ([scene], [schedule], args.device, work, size.eval))
+                 for schedule in timing for scene in timing_scenes]
+        records = [r for part in run_calls(calls, args.jobs) for r in part]
         plot = plot_error_time(records, args.results / f"error_vs_time_{tag}.png",
                                f"Error against run time ({common['machine']})")
         _write(args.results, f"error_vs_time_{tag}", {

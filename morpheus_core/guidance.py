@@ -4,13 +4,15 @@ One call returns a surrogate loss whose gradient with respect to the renders is 
 paper's Eq. (6) (Proposition 3), per step:
 
     prior guidance      Σ_n Σ_m k_nm · λc · w(t) · V Λ_nm Vᵀ (ε_n − ε_φn)     into the novel views
-    reference guidance  Σ_n Σ_m k_nm · (1 − λc)/σ² · ‖Λ_nm (Vᵀx_ref − Vᵀy)‖²   on the reference view
+    reference guidance  Σ_n Σ_m k_nm · (1 − λc)/σ² · ‖Λ_nm (Vᵀx_ref − Vᵀy)‖² / (C·H·W)  on the reference view
 
 where ε_φn is the sampled noise ε for SDS and the fine-tuned counterpart's prediction for VSD.
-Both are averaged over the batch (the expectation over cameras). The prior term is applied in
-each prior's own space (its ``encode`` of the render, e.g. VAE latents) and flows back through
-the encoder; the reference term acts on the RGB reference render. VSD, Magic123, Morpheus3D
-and every ablation of the paper are configurations of this one function (see ``configs``).
+Both are averaged over the batch (the expectation over cameras). The reductions are the official
+code's (``morpheus_core.loss_balance``): the prior term is summed over the prior's space, the
+reference term is a mean over its C·H·W elements; the paper's λc only means what it says under them.
+The prior term is applied in each prior's own space (its ``encode`` of the render, e.g. VAE
+latents) and flows back through the encoder; the reference term acts on the RGB reference render.
+VSD, Magic123, Morpheus3D and every ablation of the paper are configurations of this one function (see ``configs``).
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ import torch
 from torch import Tensor
 
 from morpheus_core.diffusion import NoiseSchedule, TimestepRange, Weighting, sample_timesteps, work_dtype
-from morpheus_core.frequency import BandMask, filter_residual, frequency_reference_loss
+from morpheus_core.frequency import BandMask, filter_residual
+from morpheus_core.loss_balance import reference_loss
 from morpheus_core.priors.base import Prior
 
 Mode = Literal["sds", "vsd"]
@@ -304,7 +307,7 @@ def hybrid_guidance(
             for m, f in enumerate(term.filters):
                 if f.k == 0.0:
                     continue
-                rl = frequency_reference_loss(reference_render, reference, f.band) / (reference.shape[0] // objects)
+                rl = reference_loss(reference_render, reference, f.band, objects)
                 loss = loss + f.k * ref_scale * rl
                 stats[f"term{i}/{term.prior}/ref{m}"] = rl.detach()
 

@@ -4,7 +4,7 @@ The SDF starts from the NeRF density (inside where density > 25) on the grid the
 texture field (hash grid + MLP) is warm-started from the NeRF's albedo around the surface and
 then trained with the geometry. Losses: reference guidance + mask BCE on the reference view, the
 3D prior on random views, Laplacian smoothness, normal consistency and the SDF sign regulariser
-(the means are scaled by the pixel count so their weights hold at any resolution).
+(every term a mean, balanced as in ``morpheus_core.loss_balance``).
 
 ``--init-mesh`` (refining an existing asset, paper §5.6): the SDF sign comes from the mesh's
 winding number and the texture field is fitted to colours sampled from its baked texture.
@@ -24,9 +24,19 @@ from assets_store.atomic import atomic_write
 from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.geometry.nerf_to_dmtet import (
+    Conversion,
+    ConversionConfig,
+    Silhouettes,
+    convert,
+    mesh_silhouettes,
+    silhouette_iou,
+)
 from morpheus_core.geometry.winding import winding_number
+from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
+from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
 from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
 from ops.colour_fit import fit_colour_field, jittered_surface_points
 from ops.guidance_settings import GuidanceSettings
@@ -40,10 +50,8 @@ from ops.stage_common import (
     StageResult,
     load_module,
     loop_metrics,
-    mask_loss,
     novel_cameras,
     pick_device,
-    pixels,
     require_finite_output,
     save_module,
     save_stage_preview,
@@ -53,7 +61,7 @@ from ops.stage_common import (
 MESH_FILE = "mesh.safetensors"
 TEXTURE_FILE = "texture_field.safetensors"
 DMTET_FILE = "dmtet.safetensors"
-CODE_VERSION = "dmtet-1"
+CODE_VERSION = "dmtet-2"  # 2: loss balance, silhouette-chosen conversion, NeRF silhouettes
 
 
 @dataclass(frozen=True)
@@ -65,7 +73,7 @@ class DMTetFitConfig:
     n_views: int = 1
     grid: int | None = None
     max_grid: int = 128
-    density_threshold: float = 25.0
+    conversion: ConversionConfig = field(default_factory=ConversionConfig)
     deform_scale: float = 0.5
     texture: TextureFieldConfig = field(default_factory=TextureFieldConfig)
     guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
@@ -74,9 +82,14 @@ class DMTetFitConfig:
     lr_grid: float = 1e-2
     lr_mlp: float = 1e-3
     mask_weight: float = 1.0
-    laplacian_weight: float = 10.0
-    normal_consistency_weight: float = 0.1
-    sdf_reg_weight: float = 0.01
+    # Against the mean reference terms these keep the weights the regularisers had against the summed
+    # ones before the official balance (÷ 3 channels).
+    laplacian_weight: float = 3.0
+    normal_consistency_weight: float = 0.03
+    sdf_reg_weight: float = 0.003
+    # The NeRF's silhouettes from the conversion's check views (``conversion``), one view per step,
+    # hold the geometry the NeRF learned while the prior refines it (BCE, a mean like the mask's).
+    nerf_silhouette_weight: float = 1.0
     colour_fit_steps: int = 300
     colour_fit_points: int = 1 << 15
     init_mesh_max_faces: int = 3000
@@ -94,9 +107,10 @@ def choose_grid(cfg: DMTetFitConfig, planned: int | None) -> int:
 
 class DMTetTask(GuidedTask):
     def __init__(self, cfg: DMTetFitConfig, target: ReferenceTarget, suite: PriorSuite, dmtet: DMTet,
-                 texture: TextureField, device: torch.device) -> None:
+                 texture: TextureField, device: torch.device, teacher: Silhouettes | None = None) -> None:
         self.cfg, self.dmtet, self.texture = cfg, dmtet, texture
-        super().__init__(target, suite, cfg.guidance, {"dmtet": dmtet, "texture": texture}, [
+        self.teacher = teacher if cfg.nerf_silhouette_weight > 0 else None
+        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, {"dmtet": dmtet, "texture": texture}, [
             {"params": [dmtet.sdf], "lr": cfg.lr_sdf},
             {"params": [dmtet.deform], "lr": cfg.lr_deform},
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
@@ -117,13 +131,20 @@ class DMTetTask(GuidedTask):
         ref = render_mesh(mesh, self.target.camera, r, r, self.texture)
         cams = novel_cameras(cfg.n_views, generator, self.device)
         novel = render_mesh(mesh, cams, r, r, self.texture).rgb_chw()
-        m = mask_loss(ref.opacity_chw(), self.target.mask)
+        m = mask_bce(ref.opacity_chw(), self.target.mask)
         lap, nc = laplacian_smoothness(mesh), normal_consistency(mesh)
         reg = self.dmtet.sdf_regulariser()
-        loss = cfg.mask_weight * m + pixels(r) * (cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc
-                                                  + cfg.sdf_reg_weight * reg)
+        loss = (cfg.mask_weight * m + cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc
+                + cfg.sdf_reg_weight * reg)
         terms = {"mask_bce": m.detach(), "laplacian": lap.detach(), "normal_consistency": nc.detach(),
                  "sdf_reg": reg.detach()}
+        if self.teacher is not None:
+            view = step % len(self.teacher.cameras)  # a fixed cycle: the step's random draws stay as they were
+            size = self.teacher.opacity.shape[-1]
+            alpha = render_mesh(mesh, self.teacher.cameras[view:view + 1], size, size, _no_colour).opacity_chw()
+            sil = mask_bce(alpha, self.teacher.opacity[view][None, None])
+            loss = loss + cfg.nerf_silhouette_weight * sil
+            terms["nerf_silhouette"] = sil.detach()
         return RenderedStep(cams, novel, ref.rgb_chw(), loss, terms)
 
     @torch.no_grad()
@@ -138,17 +159,27 @@ class DMTetTask(GuidedTask):
             return {"ref_psnr": float("nan")}
 
 
+def _no_colour(points: torch.Tensor) -> torch.Tensor:
+    return torch.zeros_like(points)
+
+
 def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_path: Path, cfg: DMTetFitConfig,
-                   device: torch.device, generator: torch.Generator) -> float:
-    """SDF from the NeRF density, texture field fitted to its albedo; returns the fit MSE."""
-    nerf, _, _ = load_module(nerf_path, NerfField, NerfConfig, device)
+                   device: torch.device, generator: torch.Generator) -> tuple[float, Conversion]:
+    """SDF from the NeRF at the iso-level its silhouettes choose (``nerf_to_dmtet``), texture field
+    fitted to its albedo; returns the fit MSE and the conversion (level, silhouette IoUs)."""
+    nerf, _, extra = load_module(nerf_path, NerfField, NerfConfig, device)
     nerf.update_step(1 << 30)  # every level active, as at the end of stage 1a
+    occupancy = None
+    if "occupancy" in extra:
+        occupancy = OccupancyGrid(OccupancyGridConfig(resolution=extra["occupancy"].shape[0]), nerf.bbox_radius)
+        occupancy = occupancy.to(device)
+        occupancy.density.copy_(extra["occupancy"].to(device))
     with torch.no_grad():
-        dmtet.init_from_density(nerf.density, cfg.density_threshold)
+        conversion = convert(dmtet, nerf, cfg.conversion, occupancy)
         mesh = dmtet()
         pts = jittered_surface_points(mesh.vertices, cfg.colour_fit_points, 2 * dmtet.config.cell_size, generator)
         colours = torch.cat([nerf.query(p).albedo for p in pts.split(1 << 16)])
-    return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator)
+    return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator), conversion
 
 
 def init_from_asset(dmtet: DMTet, texture: TextureField, asset: Path, cfg: DMTetFitConfig,
@@ -202,13 +233,18 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
     if init_mesh is not None:
         fit_mse = init_from_asset(dmtet, texture, Path(init_mesh), cfg, dev, generator)
         notes = [f"initialised from {Path(init_mesh).name} (winding number) instead of a NeRF"]
+        init_metrics = {}
+        teacher = None
     else:
-        fit_mse = init_from_nerf(dmtet, texture, Path(nerf_dir) / NERF_FILE, cfg, dev, generator)
-        notes = []
+        fit_mse, conversion = init_from_nerf(dmtet, texture, Path(nerf_dir) / NERF_FILE, cfg, dev, generator)
+        notes = [f"NeRF → DMTet at occupancy level {conversion.level:g}: mean silhouette IoU "
+                 f"{conversion.iou:.3f} against the NeRF over {len(conversion.silhouettes.opacity)} views"]
+        init_metrics = {"iso_level": conversion.level, "init_silhouette_iou": round(conversion.iou, 4)}
+        teacher = conversion.silhouettes
     target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
     suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
     try:
-        task = DMTetTask(cfg, target, suite, dmtet, texture, dev)
+        task = DMTetTask(cfg, target, suite, dmtet, texture, dev, teacher)
     except BaseException:
         suite.close()
         raise
@@ -222,7 +258,10 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
         metrics = loop_metrics(result) | {"grid": grid, "faces": mesh.num_faces, "vertices": mesh.num_vertices,
-                                          "colour_fit_mse": round(fit_mse, 6)}
+                                          "colour_fit_mse": round(fit_mse, 6), **init_metrics}
+        if teacher is not None:  # how much of the NeRF's silhouettes the optimised mesh still holds
+            alpha = mesh_silhouettes(dmtet, teacher, teacher.opacity.shape[-1])
+            metrics["final_silhouette_iou"] = round(float(silhouette_iou(alpha, teacher.opacity).mean()), 4)
         return StageResult(metrics, suite.description, str(dev), notes)
 
     return StageJob("dmtet", task, generator, cfg.loop, finish, suite.close)

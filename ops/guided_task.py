@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from morpheus_core.cameras import Cameras
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
+from morpheus_core.loss_balance import scaled_total
 from morpheus_core.render.output import RenderOutput
 from ops.guidance_settings import GuidanceSettings
 from ops.optimise import StepOutput
@@ -45,19 +46,21 @@ class RenderedStep:
 
 
 def step_output(out: GuidanceOutput, extra_loss: Tensor, terms: dict[str, Tensor], vsd: bool) -> StepOutput:
-    """A step's loss: the guidance (θ), the VSD counterparts' loss (φ) and the stage's own terms."""
+    """A step's loss: the guidance (θ), the VSD counterparts' loss (φ) and the stage's own terms, balanced
+    as the official code balances them (``morpheus_core.loss_balance``)."""
     terms = {"guidance": out.loss.detach(), **({"finetune": out.finetune_loss.detach()} if vsd else {}), **terms}
-    return StepOutput(out.loss + out.finetune_loss + extra_loss, terms, out.nonfinite_prior_values)
+    return StepOutput(scaled_total(out.loss, extra_loss, out.finetune_loss), terms, out.nonfinite_prior_values)
 
 
 class GuidedTask(ABC):
-    """A ``StageTask`` over ``modules`` trained by one Adam over ``groups`` under ``guidance``."""
+    """A ``StageTask`` over ``modules`` trained by one Adam over ``groups`` under ``guidance`` for a
+    stage of ``steps`` steps."""
 
-    def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings,
+    def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings, steps: int,
                  modules: dict[str, nn.Module], groups: list[dict[str, Any]], device: torch.device) -> None:
         self.target, self.suite, self.device = target, suite, device
         self.modules = modules
-        self.guidance = guidance.build()
+        self.guidance = guidance.build(steps)
         self.schedule = NoiseSchedule()
         self.opt = adam(groups)
 

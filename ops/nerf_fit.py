@@ -9,7 +9,7 @@ grid), ``preview.png`` (photo | reference render | novel views), ``runlog.parque
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ from torch import Tensor
 
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
 from ops.guidance_settings import GuidanceSettings
 from ops.guided_task import GuidedTask, RenderedStep
@@ -28,7 +29,6 @@ from ops.stage_common import (
     ReferenceTarget,
     StageResult,
     loop_metrics,
-    mask_loss,
     novel_cameras,
     pick_device,
     require_finite_output,
@@ -38,7 +38,7 @@ from ops.stage_common import (
 )
 
 NERF_FILE = "nerf.safetensors"
-CODE_VERSION = "nerf_fit-1"
+CODE_VERSION = "nerf_fit-2"  # 2: the official loss balance
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,11 @@ class NerfFitConfig:
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
     use_occupancy: bool = True
     guidance: GuidanceSettings = field(
-        default_factory=lambda: GuidanceSettings(t_hi_start=0.98, t_hi=0.5, anneal_step=5000))
+        default_factory=lambda: GuidanceSettings(t_hi_start=0.98, t_hi=0.5))
     lr_grid: float = 1e-2
     lr_mlp: float = 1e-3
     mask_weight: float = 1.0
-    normal_smooth_weight: float = 0.05
+    normal_smooth_weight: float = 1.0  # the official λ_normal_smoothness, on the mean
     preview_size: int = 160
 
     def __post_init__(self) -> None:
@@ -64,11 +64,12 @@ class NerfFitConfig:
 
 
 def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
-    """Squared differences of neighbouring rendered normals where both pixels are opaque."""
+    """Squared differences of neighbouring rendered normals where both pixels are opaque, averaged
+    over the elements (views × pixels × 3) of each direction like the official code's regulariser."""
     w = opacity.squeeze(-1)
-    dx = (normal[:, :, 1:] - normal[:, :, :-1]).pow(2).sum(-1) * w[:, :, 1:] * w[:, :, :-1]
-    dy = (normal[:, 1:] - normal[:, :-1]).pow(2).sum(-1) * w[:, 1:] * w[:, :-1]
-    return (dx.sum() + dy.sum()) / normal.shape[0]
+    dx = (normal[:, :, 1:] - normal[:, :, :-1]).pow(2) * (w[:, :, 1:] * w[:, :, :-1]).unsqueeze(-1)
+    dy = (normal[:, 1:] - normal[:, :-1]).pow(2) * (w[:, 1:] * w[:, :-1]).unsqueeze(-1)
+    return dx.mean() + dy.mean()
 
 
 class NerfTask(GuidedTask):
@@ -77,17 +78,17 @@ class NerfTask(GuidedTask):
         self.cfg = cfg
         self.field = NerfField(cfg.model, generator=generator).to(device)
         self.occupancy = OccupancyGrid(cfg.occupancy, cfg.model.bbox_radius).to(device)
-        super().__init__(target, suite, cfg.guidance, {"field": self.field, "occupancy": self.occupancy}, [
+        modules = {"field": self.field, "occupancy": self.occupancy}
+        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, modules, [
             {"params": list(self.field.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(self.field.density_mlp.parameters()) + list(self.field.albedo_mlp.parameters()),
              "lr": cfg.lr_mlp},
         ], device)
-        self.eval_render = VolumeRenderConfig(n_samples=cfg.render.n_samples, stratified=False, with_normals=False,
-                                              chunk_points=cfg.render.chunk_points)
+        # Every render setting of the config reaches both renders; only what a render is for differs.
+        self.eval_render = replace(cfg.render, stratified=False, with_normals=False)
 
     def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool) -> Any:
-        render_cfg = VolumeRenderConfig(self.cfg.render.n_samples, True, with_normals, self.cfg.render.max_density,
-                                        self.cfg.render.chunk_points)
+        render_cfg = replace(self.cfg.render, stratified=True, with_normals=with_normals)
         occ = self.occupancy if self.cfg.use_occupancy else None
         return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
                              generator)
@@ -101,7 +102,7 @@ class NerfTask(GuidedTask):
         cams = novel_cameras(cfg.n_views, generator, self.device)
         smooth = cfg.normal_smooth_weight > 0
         novel = self._render(cams, generator, smooth)
-        m = mask_loss(ref.opacity_chw(), self.target.mask)
+        m = mask_bce(ref.opacity_chw(), self.target.mask)
         loss, terms = cfg.mask_weight * m, {"mask_bce": m.detach()}
         if smooth:
             s = normal_smoothness(novel.normal, novel.opacity)

@@ -16,11 +16,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
 from morpheus_core.geometry.hashgrid import HashGridConfig
+from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import BakeConfig, TextureFieldConfig
 from ops.config_tree import apply_overrides
 from ops.dmtet import DMTetFitConfig
-from ops.guidance_settings import GuidanceSettings
 from ops.nerf_fit import NerfFitConfig, small_field
 from ops.optimise import LoopConfig
 from ops.plan import PlanConfig
@@ -45,11 +45,6 @@ class PipelineConfig:
     qa: QAConfig = field(default_factory=QAConfig)
 
 
-def _nerf_guidance(steps: int) -> GuidanceSettings:
-    """The paper anneals t's upper bound 0.98 → 0.5 half-way through the NeRF stage."""
-    return GuidanceSettings(t_hi_start=0.98, t_hi=0.5, anneal_step=max(1, steps // 2))
-
-
 def paper() -> PipelineConfig:
     return PipelineConfig()
 
@@ -57,8 +52,7 @@ def paper() -> PipelineConfig:
 def standard() -> PipelineConfig:
     return PipelineConfig(
         nerf=NerfFitConfig(loop=LoopConfig(3000, checkpoint_every=250, log_every=25), resolution=96,
-                           render=VolumeRenderConfig(n_samples=128, with_normals=False),
-                           guidance=_nerf_guidance(3000)),
+                           render=VolumeRenderConfig(n_samples=128, with_normals=False)),
         dmtet=DMTetFitConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
         texture=TextureRefineConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
         qa=QAConfig(eval_resolution=512, turntable_views=36),
@@ -74,10 +68,11 @@ def draft() -> PipelineConfig:
         nerf=NerfFitConfig(loop=LoopConfig(steps, checkpoint_every=25, log_every=10), resolution=48,
                            model=small_field(), render=VolumeRenderConfig(n_samples=48, with_normals=False),
                            occupancy=OccupancyGridConfig(resolution=32, update_every=8),
-                           guidance=_nerf_guidance(steps), preview_size=128,
+                           preview_size=128,
                            normal_smooth_weight=0.0),  # normals cost 6 extra density queries per sample
         dmtet=DMTetFitConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,
-                             texture=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13, preview_size=128),
+                             texture=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13, preview_size=128,
+                             conversion=ConversionConfig(samples=48)),
         texture=TextureRefineConfig(loop=LoopConfig(60, checkpoint_every=20, log_every=10), resolution=96,
                                     preview_size=128),
         bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
@@ -104,7 +99,7 @@ def with_steps(cfg: PipelineConfig, nerf: int, dmtet: int, texture: int) -> Pipe
 
     return replace(
         cfg,
-        nerf=replace(cfg.nerf, loop=loop(cfg.nerf.loop, nerf), guidance=_nerf_guidance(nerf)),
+        nerf=replace(cfg.nerf, loop=loop(cfg.nerf.loop, nerf)),
         dmtet=replace(cfg.dmtet, loop=loop(cfg.dmtet.loop, dmtet)),
         texture=replace(cfg.texture, loop=loop(cfg.texture.loop, texture)),
     )

@@ -52,19 +52,6 @@ def novel_cameras(n: int, generator: torch.Generator, device: torch.device,
     return sample_orbit(n, orbit, generator).to(device)
 
 
-def mask_loss(opacity: Tensor, mask: Tensor) -> Tensor:
-    """BCE of the reference-view opacity (B×1×H×W) against the mask, summed over pixels like the
-    paper's reference term ‖x0 − y‖², so weights keep their meaning across resolutions."""
-    o = opacity.float().clamp(1e-5, 1.0 - 1e-5)
-    with torch.autocast(o.device.type, enabled=False):  # BCE refuses to autocast: it is float32 here
-        return F.binary_cross_entropy(o, mask.float().expand_as(o), reduction="sum") / o.shape[0]
-
-
-def pixels(resolution: int) -> float:
-    """Regularisers that are means get multiplied by this, matching the summed image terms."""
-    return float(resolution * resolution)
-
-
 def reference_psnr(render_rgb: Tensor, target: ReferenceTarget) -> float:
     value = psnr(render_rgb.detach().float().clamp(0, 1), target.rgb.float())
     return value if math.isfinite(value) else 99.0

@@ -41,7 +41,7 @@ from ops.stage_common import (
     write_log,
 )
 
-CODE_VERSION = "texture_refine-1"
+CODE_VERSION = "texture_refine-2"  # 2: the official loss balance
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,7 @@ class TextureTask(GuidedTask):
     def __init__(self, cfg: TextureRefineConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
                  texture: TextureField, device: torch.device) -> None:
         self.cfg, self.mesh, self.texture = cfg, mesh, texture
-        super().__init__(target, suite, cfg.guidance, {"texture": texture}, [
+        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, {"texture": texture}, [
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
         ], device)

@@ -18,6 +18,7 @@ TINY_OVERRIDES = [
     f"device={DEVICE}", "priors.kind=proxy", "priors.proxy_grid=24",
     "nerf.resolution=24", "nerf.render.n_samples=24", "nerf.occupancy.resolution=16",
     "dmtet.resolution=40", "dmtet.max_grid=24", "dmtet.colour_fit_steps=40", "dmtet.colour_fit_points=2048",
+    "dmtet.conversion.ring_views=3", "dmtet.conversion.resolution=32", "dmtet.conversion.samples=24",
     "texture.resolution=40", "texture.follow_plan=false",
     "bake.bake.texture_size=64", "bake.eval_resolution=64", "bake.turntable_views=4",
     "qa.eval_resolution=64", "qa.turntable_views=4", "qa.turntable_resolution=64",
@@ -37,8 +38,6 @@ def cli_overrides(cfg: PipelineConfig) -> list[str]:
         loop = getattr(cfg, stage).loop
         args += ["--set", f"{stage}.loop.steps={loop.steps}", "--set", f"{stage}.loop.checkpoint_every="
                  f"{loop.checkpoint_every}", "--set", f"{stage}.loop.log_every={loop.log_every}"]
-    g = cfg.nerf.guidance
-    args += ["--set", f"nerf.guidance.anneal_step={g.anneal_step}"]
     return args
 
 

@@ -21,11 +21,11 @@ def test_paper_preset_holds_the_papers_schedule() -> None:
     assert (cfg.nerf.loop.steps, cfg.dmtet.loop.steps, cfg.texture.loop.steps) == (10_000, 5000, 5000)
     assert (cfg.nerf.resolution, cfg.dmtet.resolution, cfg.texture.resolution) == (128, 512, 512)
     assert cfg.nerf.render.n_samples == 256 and cfg.dmtet.max_grid == 128
-    g = cfg.texture.guidance.build()
+    g = cfg.texture.guidance.build(cfg.texture.loop.steps)
     assert g.lambda_c == 5e-4 and [t.mode for t in g.terms] == ["sds", "vsd"]
     assert g.terms[1].filters[0].band == BandMask.high_pass(0.6) and g.terms[1].filters[0].k == 3.0
     assert g.terms[0].cfg_scale == 3.0 and g.terms[1].cfg_scale == 2.0 and g.terms[1].finetuned_cfg_scale == 1.0
-    t = cfg.nerf.guidance.t_range()
+    t = cfg.nerf.guidance.t_range(cfg.nerf.loop.steps)
     assert t.bounds(0) == (0.02, 0.98) and t.bounds(5000) == (0.02, 0.5)
 
 
@@ -61,7 +61,7 @@ def test_every_paper_ablation_row_is_a_setting() -> None:
     expected = paper_ablations()
     assert set(rows) == set(expected)
     for name, sets in rows.items():
-        built = preset("paper", sets).texture.guidance.build()
+        built = preset("paper", sets).texture.guidance.build(5000)
         # A term whose every filter has k = 0 or the null band adds nothing; the settings leave it out.
         want = [t for t in expected[name].terms if any(f.k > 0 and f.band.kind != "null" for f in t.filters)]
         assert [(t.prior, t.mode, t.filters, t.cfg_scale) for t in built.terms] == \

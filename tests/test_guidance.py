@@ -72,7 +72,8 @@ def _bindings(n_priors: int, finetuned: bool) -> dict[str, PriorBinding]:
 
 def _closed_form(config, bindings, novel, ref_render, ref, draws):
     """Eq. (6) written out with explicit DCT matrices: Σ_n Σ_m k·[λc w VΛVᵀ(ε_n − ε_φn)] and
-    Σ_n Σ_m k·(1 − λc)/σ² · 2 VΛVᵀ(x_ref − y), each averaged over its batch."""
+    Σ_n Σ_m k·(1 − λc)/σ² · 2 VΛVᵀ(x_ref − y), each averaged over its batch; the reference term is a
+    mean over each view's C·H·W elements too (the official reductions, ``loss_balance``)."""
     g_novel = torch.zeros_like(novel)
     g_ref = torch.zeros_like(ref_render)
     x = novel.detach()
@@ -87,7 +88,8 @@ def _closed_form(config, bindings, novel, ref_render, ref, draws):
             r_filtered = idct2(apply_band(dct2(eps - eps_phi), f.band))
             g_novel += f.k * LAMBDA_C * (1 - ab) * r_filtered / x.shape[0]
             diff = (ref_render - ref).detach()
-            g_ref += f.k * (1 - LAMBDA_C) / SIGMA**2 * 2 * idct2(apply_band(dct2(diff), f.band)) / ref.shape[0]
+            g_ref += (f.k * (1 - LAMBDA_C) / SIGMA**2 * 2 * idct2(apply_band(dct2(diff), f.band))
+                      / (ref.shape[0] * ref[0].numel()))
     return g_novel, g_ref
 
 
@@ -153,7 +155,8 @@ def test_proposition2_prior_guidance_identity_band_equals_spatial(mode: str) -> 
     eps_phi = bindings["p"].finetuned.predict_noise(xt, draw.t, None, 1.0).detach() if mode == "vsd" else draw.noise
     ab = SCHED.alphas_cumprod[draw.t].reshape(-1, 1, 1, 1)
     assert _rel(novel.grad, LAMBDA_C * (1 - ab) * (eps - eps_phi) / B) < 1e-6
-    assert _rel(ref_render.grad, (1 - LAMBDA_C) / SIGMA**2 * 2 * (ref_render - ref).detach()) < 1e-6
+    elements = ref_render[0].numel()  # the reference term is a mean over C·H·W
+    assert _rel(ref_render.grad, (1 - LAMBDA_C) / SIGMA**2 * 2 * (ref_render - ref).detach() / elements) < 1e-6
 
 
 def test_vsd_finetune_loss_trains_only_the_counterpart() -> None:

@@ -192,3 +192,28 @@ def test_committed_results_are_consistent_with_their_tables() -> None:
     for path in found:
         data = json.loads(path.read_text())
         assert data["records"] and path.with_suffix(".md").is_file()
+
+
+def test_parallel_calls_give_the_serial_results_in_order() -> None:
+    calls = [(sorted, ([3, 1, 2],)), (sorted, ([9, 7],)), (list, ("ab",))]
+    assert quality.run_calls(calls, jobs=2) == quality.run_calls(calls, jobs=1) == [[1, 2, 3], [7, 9], ["a", "b"]]
+
+
+def test_seed_spread_sets_each_margin_against_the_seeds() -> None:
+    from benchmarks.ablations import seed_spread
+    from benchmarks.quality_report import seed_spread_markdown
+
+    def recs(base: float, full: float, ours: float) -> list[dict]:
+        return [{"scene": s, "row": row, "novel_psnr": v + d, "colour_deviation": 0.2 - v / 100}
+                for s, d in (("a", 0.0), ("b", 1.0)) for row, v in (("base", base), ("full_pass_2d", full),
+                                                                   ("ours", ours))]
+
+    by_seed = {0: recs(14.0, 13.0, 15.0), 1: recs(14.2, 13.1, 15.1), 2: recs(13.9, 13.2, 15.3)}
+    spread = seed_spread(by_seed, "novel_psnr")
+    assert spread["base"]["per_seed"] == pytest.approx([14.5, 14.7, 14.4])
+    assert spread["base"]["range"] == pytest.approx(0.3)
+    assert spread["ours − base"]["mean"] == pytest.approx((1.0 + 0.9 + 1.4) / 3)
+    text = seed_spread_markdown(by_seed)
+    assert "ours − base: a real margin" in text and "ours − full_pass_2d: a real margin" in text
+    close = {0: recs(14.0, 13.0, 14.1), 1: recs(14.2, 13.1, 14.0), 2: recs(13.9, 13.2, 14.0)}
+    assert "ours − base: within the seed spread" in seed_spread_markdown(close)

@@ -338,10 +338,19 @@ class DMTet(nn.Module):
 
     @torch.no_grad()
     def init_from_density(self, density_fn: DensityFn, threshold: float = 25.0, chunk_size: int = 1 << 18) -> None:
-        """Set the SDF from a density field: inside where density > ``threshold`` (paper: 25).
+        """Set the SDF from a density field: inside where density > ``threshold`` (paper: 25)."""
+        self.init_from_values(self._evaluate(density_fn, chunk_size, "density_fn"), threshold)
 
-        The surface is where the linear interpolant of density − threshold crosses zero on grid
-        edges. The raw difference has the density's scale (hundreds to thousands for a NeRF),
+    def evaluate(self, fn: Callable[[Tensor], Tensor], chunk_size: int = 1 << 18) -> Tensor:
+        """``fn`` at every grid vertex, (N,), in chunks of ``chunk_size`` points."""
+        return self._evaluate(fn, chunk_size, "fn")
+
+    @torch.no_grad()
+    def init_from_values(self, values: Tensor, threshold: float) -> None:
+        """Set the SDF from per-vertex values (density, occupancy…): inside where value > ``threshold``.
+
+        The surface is where the linear interpolant of value − threshold crosses zero on grid
+        edges. The raw difference has the field's scale (hundreds to thousands for a NeRF density),
         which would pin the surface; it is redistanced instead: each vertex on a crossing edge
         gets ± its distance to the nearest crossing on its edges, every other vertex ±
         ``init_clamp_cells`` cells. Signs — so the mesh topology — are kept exactly; crossings
@@ -349,21 +358,23 @@ class DMTet(nn.Module):
         """
         if not math.isfinite(threshold):
             raise ValueError(f"threshold must be finite, got {threshold}")
-        density = self._evaluate(density_fn, chunk_size, "density_fn")
-        if bool(torch.isnan(density).any()):
-            raise NonFiniteFieldError(f"density_fn returned {int(torch.isnan(density).sum())} NaN value(s); "
+        if values.shape != self.sdf.shape:
+            raise ValueError(f"need one value per grid vertex ({self.num_vertices}), got {tuple(values.shape)}")
+        values = values.to(self.sdf)
+        if bool(torch.isnan(values).any()):
+            raise NonFiniteFieldError(f"the field returned {int(torch.isnan(values).sum())} NaN value(s); "
                                       "the NeRF is broken — check the NeRF stage")
         # +inf density (an exp overflow) is simply 'very inside'; a finite cap keeps the arithmetic finite.
-        big = torch.finfo(density.dtype).max / 4
-        raw = threshold - density.clamp(-big, big)
+        big = torch.finfo(values.dtype).max / 4
+        raw = threshold - values.clamp(-big, big)
         inside = int((raw < 0).sum())
         if inside == 0:
-            raise EmptySurfaceError(f"density threshold {threshold:g} is too high: no grid vertex has density above "
-                                    f"it (max density {float(density.max()):.4g}); lower `threshold` or check "
+            raise EmptySurfaceError(f"threshold {threshold:g} is too high: no grid vertex has a value above "
+                                    f"it (max {float(values.max()):.4g}); lower `threshold` or check "
                                     "the NeRF stage")
         if inside == raw.numel():
-            raise EmptySurfaceError(f"density threshold {threshold:g} is too low: every grid vertex has density "
-                                    f"above it (min density {float(density.min()):.4g}); raise `threshold` or "
+            raise EmptySurfaceError(f"threshold {threshold:g} is too low: every grid vertex has a value "
+                                    f"above it (min {float(values.min()):.4g}); raise `threshold` or "
                                     "check the NeRF stage")
         self._warn_if_touching_boundary(raw)
         self.sdf.copy_(self._redistance(raw))
