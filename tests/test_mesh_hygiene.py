@@ -1,16 +1,19 @@
 """Mesh hygiene: components, floater removal with vertex compaction, Euler number, genus, holes and
 non-manifold edges, on meshes built here (random sizes and placements from a fresh seed each run,
-printed on failure, plus fixed seeds)."""
+named in the failure message, plus fixed seeds); and the bake stage recording what it dropped."""
 
 from __future__ import annotations
 
 import secrets
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from PIL import Image
 
+from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.mesh_hygiene import (
     connected_labels,
@@ -18,6 +21,11 @@ from morpheus_core.geometry.mesh_hygiene import (
     mesh_components,
     topology_report,
 )
+from morpheus_core.render.textured import load_textured
+from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig
+from ops.dmtet import MESH_FILE, TEXTURE_FILE, save_mesh
+from ops.stage_common import save_module
+from ops.uv_bake import ASSET_GLB, UVBakeConfig, bake_asset
 
 FRESH = secrets.randbits(31)
 SEEDS = [0, 1, FRESH]
@@ -185,3 +193,37 @@ def test_connected_labels_match_a_breadth_first_search(seed: int) -> None:
         count += 1
     # Both number components by their smallest node, so the labels agree exactly.
     assert np.array_equal(labels, want), _report_seed(seed)
+
+
+# -- the bake stage ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("share", [0.01, 0.0])
+def test_bake_stage_drops_floaters_and_records_its_decisions(tmp_path: Path, share: float) -> None:
+    rng = np.random.default_rng(FRESH)
+    big_v, big_f = _sphere(rng, 2, 0.5)
+    tiny_v, tiny_f = _sphere(rng, 1, 0.03)
+    mesh = _mesh(np.concatenate([big_v * 0.5, tiny_v * 0.5 + 0.6]), np.concatenate([big_f, tiny_f + len(big_v)]))
+    dmtet_dir, reference = tmp_path / "dmtet", tmp_path / "reference"
+    for d in (dmtet_dir, reference, tmp_path / "out"):
+        d.mkdir()
+    save_mesh(dmtet_dir / MESH_FILE, mesh)
+    tcfg = TextureFieldConfig(hashgrid=HashGridConfig(n_levels=2, log2_table_size=8), hidden_dim=8)
+    save_module(dmtet_dir / TEXTURE_FILE, TextureField(tcfg, generator=torch.Generator().manual_seed(0)), tcfg)
+    Image.new("RGBA", (32, 32), (200, 100, 50, 255)).save(reference / "rgba_32.png")
+
+    cfg = UVBakeConfig(bake=BakeConfig(texture_size=64), write_obj=False, turntable_views=2, preview_size=32,
+                       eval_resolution=32, min_component_share=share)
+    result = bake_asset(reference, dmtet_dir, dmtet_dir, tmp_path / "out", cfg, device="cpu")
+    m = result.metrics
+    dropped = share > 0
+    assert (m["components_before"], m["components"], m["floaters_dropped"]) == ((2, 1, 1) if dropped else (2, 2, 0))
+    assert (m["floater_area_share"] > 0) == dropped and m["floater_area_share"] < 0.01
+    assert (m["euler_number"], m["genus"], m["non_manifold_edges"], m["boundary_edges"], m["holes"]) == \
+        ((2 if dropped else 4), 0, 0, 0, 0)
+    assert m["source_faces"] == len(big_f) + len(tiny_f) and m["watertight"] is True
+    assert m["faces"] == (len(big_f) if dropped else len(big_f) + len(tiny_f))
+    assert len(load_textured(tmp_path / "out" / ASSET_GLB).faces) == m["faces"]
+    assert any("dropped 1 floating component" in n for n in result.notes) == dropped
+    with pytest.raises(ValueError, match="min_component_share"):
+        UVBakeConfig(min_component_share=1.0)
