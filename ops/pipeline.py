@@ -349,13 +349,16 @@ class PhotoRun:
     def _qa(self) -> StageSpec:
         cfg = self.cfg
         producers = [s for s in self.stages if s != "qa"]
+        # Every producer is an input, the NeRF included (parts_kept renders it), so a changed
+        # NeRF re-runs QA; with --init-mesh there is no NeRF stage and parts_kept is not measured.
         inputs = {s: self.digest(s) for s in producers}
+        nerf_dir = self.dir("nerf_fit") if "nerf_fit" in producers else None
 
         def body(out: Path, _ckpt: Path | None) -> StageResult:
             upstream = {s: self.upstream(s).metrics for s in producers}
             prior = self.upstream("texture_refine").prior
             return qa.run_qa(self.dir("reference"), self.dir("uv_bake") / uv_bake.ASSET_GLB, out, cfg.qa, upstream,
-                             prior, cfg.device)
+                             prior, cfg.device, nerf_dir)
 
         return StageSpec({"qa": cfg.qa}, inputs, body)
 

@@ -77,7 +77,8 @@ def draft() -> PipelineConfig:
                                     preview_size=128),
         bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
                           eval_resolution=128),
-        qa=QAConfig(eval_resolution=128, turntable_views=24, turntable_resolution=128),
+        # The part check renders the NeRF with the samples per ray it was fitted with.
+        qa=QAConfig(eval_resolution=128, turntable_views=24, turntable_resolution=128, part_samples=48),
     )
 
 

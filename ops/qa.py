@@ -5,7 +5,8 @@ look without failing it. Thresholds come from ``QAConfig`` (``--set qa.min_ref_p
 checks of the producing stages are pure functions of their manifest metrics, so the Dagster
 assets and the QA report agree by construction; the ``qa`` stage re-loads the written GLB and
 measures it on its own (``morpheus_core.metrics``: reference-view PSNR / SSIM inside and outside
-the mask, silhouette IoU, high-frequency ratio and colour deviation over a turntable, mesh health;
+the mask, silhouette IoU, high-frequency ratio and colour deviation over a turntable, mesh health,
+its parts against the photo's mask and the NeRF's silhouettes (``ops.qa_parts``);
 ``morpheus_core.weighted_metrics``: LPIPS, CLIP similarity, CLIP-IQA, MANIQA when their weights
 are installed, else recorded as skipped) rather than trusting the numbers the bake reported.
 
@@ -31,14 +32,16 @@ from PIL import Image
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
 from morpheus_core.cameras import turntable
 from morpheus_core.metrics import colour_deviation, hf_ratio, mask_iou, masked_psnr, masked_ssim, mesh_health, ssim
+from morpheus_core.part_silhouettes import count_parts
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.weighted_metrics import WeightedMetricsConfig, compute_weighted_metrics
+from ops.qa_parts import compare_with_nerf
 from ops.stage_common import ReferenceTarget, StageResult, pick_device, reference_psnr, save_strip, to_uint8
 
 QA_FILE = "qa.json"
 QA_TURNTABLE_FILE = "turntable.png"
 QA_TURNTABLE_GIF = "turntable.gif"
-CODE_VERSION = "qa-2"
+CODE_VERSION = "qa-3"  # 3: part_count and parts_kept
 ERROR, WARN = "error", "warn"
 
 
@@ -47,7 +50,16 @@ class QAConfig:
     """Thresholds of the QA checks and the evaluation set-up. Defaults are the paper's evaluation
     (reference view at 800 px, 100 turntable views); presets shrink them. Thresholds sit below
     what the draft preset reaches on the bundled photos (GLB reference PSNR 19–23 dB, mask IoU
-    > 0.9), so a failing check means a broken asset, not a coarse one."""
+    > 0.9), so a failing check means a broken asset, not a coarse one.
+
+    Parts: ``min_part_share`` is the smallest share of the photo mask's area that counts as a
+    silhouette part (smaller pieces are segmentation specks). ``parts_kept`` renders the NeRF and
+    the GLB from ``part_views`` novel views at ``part_resolution`` px (the NeRF with
+    ``part_samples`` samples per ray) and fails when a region the NeRF shows and the GLB lacks
+    exceeds ``max_missing_part_share`` of that view's NeRF silhouette, or the IoU of some view is
+    below ``min_part_iou``; disagreements thinner than 2·``part_opening`` + 1 px (outline rings,
+    not parts) are ignored, and so is what the NeRF shows within ``part_margin`` px of the GLB's
+    silhouette (0: none; a mesh uniformly thinner than its NeRF then fails too)."""
 
     min_ref_psnr: float = 15.0
     min_mask_iou: float = 0.80
@@ -67,6 +79,14 @@ class QAConfig:
     strip_views: int = 8
     weighted_metrics: bool = True
     models_root: str | None = None
+    min_part_share: float = 0.01
+    part_views: int = 6
+    part_resolution: int = 96
+    part_samples: int = 64
+    part_opening: int = 1
+    part_margin: int = 0
+    max_missing_part_share: float = 0.1
+    min_part_iou: float = 0.5
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_mask_iou <= 1.0 or not 0.0 <= self.min_uv_coverage <= 1.0:
@@ -75,6 +95,13 @@ class QAConfig:
             raise ValueError("qa.eval_resolution and qa.turntable_resolution must be >= 16, qa.turntable_views >= 1")
         if self.render_chunk < 1 or self.strip_views < 1:
             raise ValueError("qa.render_chunk and qa.strip_views must be >= 1")
+        if min(self.part_views, self.part_samples) < 1 or self.part_resolution < 16:
+            raise ValueError("qa.part_views and qa.part_samples must be >= 1, qa.part_resolution >= 16")
+        if min(self.part_opening, self.part_margin) < 0:
+            raise ValueError("qa.part_opening and qa.part_margin must be >= 0")
+        for name in ("min_part_share", "max_missing_part_share", "min_part_iou"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"qa.{name} must lie in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -113,6 +140,11 @@ CHECKS: dict[str, tuple[CheckSpec, ...]] = {
                                                 "at most qa.max_colour_deviation)"),
            CheckSpec("hf_ratio", WARN, "novel views keep at least qa.min_hf_ratio of the photo's high-frequency "
                                         "detail"),
+           CheckSpec("part_count", WARN, "the GLB has no more connected components than the photo's mask has "
+                                         "silhouette parts (pieces of at least qa.min_part_share of its area)"),
+           CheckSpec("parts_kept", ERROR, "from qa.part_views novel views, no region the NeRF shows larger than "
+                                          "qa.max_missing_part_share of its silhouette is missing from the GLB, "
+                                          "and the silhouette IoU stays at least qa.min_part_iou"),
            CheckSpec("verdict", ERROR, "no error-severity check failed in any stage")),
 }
 
@@ -220,7 +252,8 @@ def _weighted(cfg: QAConfig, photo: torch.Tensor, mask: torch.Tensor, views: tor
 
 
 def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
-           upstream: dict[str, dict[str, Any]], prior: str = "", device: str = "auto") -> StageResult:
+           upstream: dict[str, dict[str, Any]], prior: str = "", device: str = "auto",
+           nerf_dir: Path | None = None) -> StageResult:
     """Measure the written GLB and gather every stage's checks into ``qa.json``.
 
     Metrics: reference view (at ``eval_resolution``) PSNR and SSIM, overall and inside / outside
@@ -230,6 +263,9 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     density, seam leakage); the learned metrics whose weights are installed (others are recorded
     as skipped). ``upstream`` maps stage → its manifest metrics: the producing stages' checks are
     re-evaluated here with this config's thresholds, so the verdict is one consistent decision.
+    Parts: the photo mask's silhouette parts against the GLB's components, and the GLB's
+    silhouettes against the NeRF's in ``nerf_dir`` (the ``nerf_fit`` stage's output; None when the
+    asset has no NeRF stage, which leaves ``parts_kept`` unmeasured).
     """
     dev = pick_device(device)
     out_dir = Path(out_dir)
@@ -276,9 +312,10 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         own.append(_check(_spec("qa", "hf_ratio"), hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
                           "not measured (flat photo)" if hf is None else
                           f"novel views keep {hf:.2f}× the photo's high-frequency share (minimum {cfg.min_hf_ratio})"))
+        own += _part_checks(cfg, asset, mask[0] > 0.5, int(health["components"] or 0), nerf_dir, dev, metrics)
     else:
         reason = "not measured: non-finite asset" if not finite else "not measured: the GLB has no faces"
-        for name in ("mask_iou", "colour_deviation", "hf_ratio"):
+        for name in ("mask_iou", "colour_deviation", "hf_ratio", "part_count", "parts_kept"):
             own.append(_check(_spec("qa", name), False, None, None, reason))
     closed = bool(health["watertight"])
     own.append(_check(_spec("qa", "watertight"), closed, closed, True,
@@ -296,6 +333,33 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     atomic_write_text(out_dir / QA_FILE, json.dumps(asdict(report), indent=2, sort_keys=True, default=str))
     summary = {k: v for k, v in _finite_json(metrics).items() if isinstance(v, (int, float, bool)) or v is None}
     return StageResult({**summary, "verdict": decision, "failed_checks": len(reasons)}, "none (qa)", str(dev))
+
+
+def _part_checks(cfg: QAConfig, asset: Any, mask: torch.Tensor, components: int, nerf_dir: Path | None,
+                 dev: torch.device, metrics: dict[str, Any]) -> list[QACheck]:
+    """``part_count`` and ``parts_kept``; records ``mask_parts`` and the NeRF comparison in ``metrics``."""
+    parts = count_parts(mask, cfg.min_part_share)
+    metrics["mask_parts"] = parts
+    out = [_check(_spec("qa", "part_count"), components <= parts, components, parts,
+                  f"the GLB has {components} connected component(s), the photo's mask {parts} silhouette part(s)")]
+    spec = _spec("qa", "parts_kept")
+    threshold = {"max_missing_part_share": cfg.max_missing_part_share, "min_part_iou": cfg.min_part_iou}
+    found = compare_with_nerf(asset, nerf_dir, cfg.part_views, cfg.part_resolution, cfg.part_samples,
+                              cfg.turntable_elevation, cfg.part_opening, cfg.part_margin, dev)
+    if found is None:
+        return [*out, _check(spec, True, None, threshold, "not measured: no NeRF stage output")]
+    metrics["part_iou_min"] = round(found.iou_min, 4)
+    metrics["part_iou_mean"] = round(found.iou_mean, 4)
+    metrics["missing_part_share_max"] = round(found.missing_share_max, 4)
+    lost = found.missing_share_max > cfg.max_missing_part_share
+    apart = found.iou_min < cfg.min_part_iou
+    view = max(range(len(found.missing_share)), key=found.missing_share.__getitem__)
+    message = (f"largest region the NeRF shows and the GLB lacks: {found.missing_share_max:.1%} of the NeRF "
+               f"silhouette (view {view + 1} of {len(found.iou)}; maximum {cfg.max_missing_part_share:.0%}); "
+               f"silhouette IoU min {found.iou_min:.3f} (minimum {cfg.min_part_iou}), mean {found.iou_mean:.3f}")
+    value = {"missing_part_share_max": metrics["missing_part_share_max"], "part_iou_min": metrics["part_iou_min"]}
+    return [*out, _check(spec, not (lost or apart), value, threshold,
+                         ("lost a part: " if lost else "") + message)]
 
 
 def _finite_json(metrics: dict[str, Any]) -> dict[str, Any]:

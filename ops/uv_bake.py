@@ -1,5 +1,10 @@
 """Final stage: UV-unwrap the mesh, bake the texture field, export GLB (+ OBJ) and previews.
 
+Before unwrapping, components smaller than ``min_component_share`` of the surface area are dropped
+(DMTet leaves floaters: specks of the NeRF's fuzz that xatlas would waste charts on and viewers
+would show), and the cleaned mesh's topology goes into the manifest so QA and people can see what
+was decided.
+
 The exported GLB is read back and rendered (not the field it came from), so the reference-view
 PSNR and the turntable show what a user will load. Output: ``asset.glb``, ``asset.obj`` (+ .mtl,
 .png), ``turntable.png`` (8 views around the object), ``reference_view.png`` (photo | asset).
@@ -14,6 +19,7 @@ import torch
 
 from morpheus_core.cameras import turntable
 from morpheus_core.geometry.mesh import edge_face_counts
+from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig, bake_uv, export_glb, export_obj
 from ops.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
@@ -23,12 +29,14 @@ ASSET_GLB = "asset.glb"
 ASSET_OBJ = "asset.obj"
 TURNTABLE_FILE = "turntable.png"
 REFERENCE_VIEW_FILE = "reference_view.png"
-CODE_VERSION = "uv_bake-1"
+CODE_VERSION = "uv_bake-2"  # 2: drops floaters before unwrapping, records topology
 
 
 @dataclass(frozen=True)
 class UVBakeConfig:
-    """``max_faces``: None takes the plan's decimation target (else ``bake.max_faces``)."""
+    """``max_faces``: None takes the plan's decimation target (else ``bake.max_faces``).
+    ``min_component_share``: connected components with less than this share of the total surface
+    area are dropped before unwrapping (the largest one always stays); 0 keeps everything."""
 
     bake: BakeConfig = field(default_factory=BakeConfig)
     max_faces: int | None = None
@@ -36,17 +44,30 @@ class UVBakeConfig:
     turntable_views: int = 8
     preview_size: int = 160
     eval_resolution: int = 256
+    min_component_share: float = 0.01
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_component_share < 1.0:
+            raise ValueError(f"bake.min_component_share must lie in [0, 1), got {self.min_component_share}")
 
 
 def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir: Path, cfg: UVBakeConfig,
                planned_max_faces: int | None = None, device: str = "auto") -> StageResult:
-    """Unwrap + bake + export; metrics: faces, watertightness, UV coverage, reference PSNR of the GLB."""
+    """Drop floaters, unwrap + bake + export; metrics: faces, topology of the cleaned mesh (components
+    before / after, floaters dropped and their area share, Euler number, genus, non-manifold and
+    boundary edges, holes), watertightness, UV coverage, reference PSNR of the GLB."""
     dev = pick_device(device)
-    mesh = load_mesh(Path(dmtet_dir) / MESH_FILE, dev)
+    source = load_mesh(Path(dmtet_dir) / MESH_FILE, dev)
+    mesh, hygiene = drop_floaters(source, cfg.min_component_share)
+    topology = topology_report(mesh)
     texture, _, _ = load_module(Path(texture_dir) / TEXTURE_FILE, TextureField, TextureFieldConfig, dev)
     limit = cfg.max_faces or planned_max_faces or cfg.bake.max_faces
     bake_cfg = BakeConfig(**{**vars(cfg.bake), "max_faces": limit})
     notes = []
+    if hygiene["floaters_dropped"]:
+        notes.append(f"dropped {hygiene['floaters_dropped']} floating component(s) below "
+                     f"{cfg.min_component_share:.1%} of the surface area each ({hygiene['floater_area_share']:.2%} "
+                     f"of the area in all); {hygiene['components']} component(s) kept")
     with torch.no_grad():
         baked = bake_uv(mesh, texture, bake_cfg)
     if baked.faces.shape[0] != mesh.num_faces:
@@ -64,11 +85,13 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
     save_strip(out_dir / TURNTABLE_FILE, list(views), cfg.preview_size)
     save_strip(out_dir / REFERENCE_VIEW_FILE, [target.rgb[0], ref[0]], cfg.preview_size)
     metrics = {
-        "faces": int(asset.faces.shape[0]), "source_faces": int(mesh.num_faces),
+        "faces": int(asset.faces.shape[0]), "source_faces": int(source.num_faces),
         "vertices": int(asset.vertices.shape[0]), "uv_coverage": round(baked.coverage, 4),
         "texture_size": bake_cfg.texture_size,
         # UV seams split the exported vertices, so closedness is judged on the mesh before unwrapping.
         "watertight": bool((edge_face_counts(mesh)[1] == 2).all()),
         "ref_psnr": reference_psnr(ref, target),
+        **hygiene,
+        **{k: topology[k] for k in ("euler_number", "genus", "non_manifold_edges", "boundary_edges", "holes")},
     }
     return StageResult(metrics, "none (bake)", str(dev), notes)

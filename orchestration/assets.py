@@ -63,8 +63,9 @@ STAGE_ASSETS = (
     StageAsset("uv_asset", "uv_bake", ("reference", "dmtet_mesh", "refined_texture"), False,
                "UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews."),
     StageAsset("qa_report", "qa", ("uv_asset",), False,
-               "QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, and "
-               "every stage's checks; verdict pass / warn / fail with reasons (qa.json)."),
+               "QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its "
+               "parts against the photo's mask and the NeRF's silhouettes, and every stage's checks; verdict "
+               "pass / warn / fail with reasons (qa.json)."),
 )
 ASSET_OF_STAGE = {a.stage: a.name for a in STAGE_ASSETS}
 

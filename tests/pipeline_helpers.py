@@ -22,6 +22,7 @@ TINY_OVERRIDES = [
     "texture.resolution=40", "texture.follow_plan=false",
     "bake.bake.texture_size=64", "bake.eval_resolution=64", "bake.turntable_views=4",
     "qa.eval_resolution=64", "qa.turntable_views=4", "qa.turntable_resolution=64",
+    "qa.part_resolution=32", "qa.part_samples=24",
 ]
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import secrets
+
 import pytest
 import torch
 from torch import Tensor
@@ -9,7 +11,14 @@ from torch import Tensor
 from morpheus_core.cameras import orbit, reference_camera, sample_orbit
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import FieldSample, NerfConfig, NerfField
-from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, ray_box, render_volume
+from morpheus_core.render.volume import (
+    OccupancyGrid,
+    OccupancyGridConfig,
+    VolumeRenderConfig,
+    ray_box,
+    render_silhouette,
+    render_volume,
+)
 
 
 class ConstantSphere:
@@ -112,6 +121,26 @@ def test_occupancy_grid_skips_empty_space_without_changing_the_render(device: to
     skipped = render_volume(field, cams, 24, 24, config, occupancy=grid)
     assert (full.rgb - skipped.rgb).abs().max() < 1e-2
     assert (full.opacity - skipped.opacity).abs().mean() < 1e-3
+
+
+@pytest.mark.parametrize("seed", [0, secrets.randbits(31)])
+def test_silhouette_render_matches_the_volume_render_opacity(seed: int, device: torch.device) -> None:
+    g = torch.Generator().manual_seed(seed)
+    field = small_nerf(seed).to(device)
+    cams = sample_orbit(2, generator=g).to(device)
+    samples, segment = int(torch.randint(8, 64, (1,), generator=g)), int(torch.randint(1, 20, (1,), generator=g))
+    level = float(torch.rand(1, generator=g)) * 0.8 + 0.1
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=16, density_threshold=1e-3), field.bbox_radius).to(device)
+    grid.refresh(field, g)
+    for occupancy in (None, grid):
+        opacity = render_volume(field, cams, 24, 24, VolumeRenderConfig(n_samples=samples, stratified=False,
+                                                                         with_normals=False), occupancy=occupancy)
+        want = opacity.opacity[..., 0] > level
+        got = render_silhouette(field, cams, 24, 24, samples, occupancy, level, segment)
+        # Summation order differs (per segment vs one cumsum): a pixel exactly at the level may flip.
+        near_level = (opacity.opacity[..., 0] - level).abs() < 1e-5
+        assert got.shape == want.shape and bool((got == want)[~near_level].all()), f"seed {seed}"
+        assert 0 < int(want.sum()) < want.numel(), f"seed {seed}: the test field should be partly opaque"
 
 
 def test_occupancy_grid_decays_towards_new_densities() -> None:

@@ -218,3 +218,45 @@ def render_volume(
         return x.reshape(batch, height, width, -1)
 
     return RenderOutput(image(rgb), image(opacity), image(depth), image(nrm))
+
+
+@torch.no_grad()
+def render_silhouette(
+    field: RadianceField,
+    cameras: Cameras,
+    height: int,
+    width: int,
+    n_samples: int = 128,
+    occupancy: OccupancyGrid | None = None,
+    level: float = 0.5,
+    segment: int = 16,
+) -> Tensor:
+    """(B, H, W) bool: where ``render_volume``'s opacity (unstratified, same samples and density
+    clamp) exceeds ``level``. Only densities are queried, ``segment`` samples per ray at a time,
+    and a ray stops once its optical depth passes −log(1 − level): the rest of it cannot change
+    the answer, and behind an opaque surface is where most samples of a solid object lie."""
+    if not 0.0 < level < 1.0 or n_samples < 1 or segment < 1:
+        raise ValueError("level must lie in (0, 1), n_samples and segment must be ≥ 1")
+    origins, dirs = cameras.rays(height, width)
+    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    near, far, hit = ray_box(o, d, field.bbox_radius)
+    step = (far - near) / n_samples
+    depth_needed = -math.log1p(-level)
+    tau = torch.zeros_like(near)
+    live = hit.nonzero().squeeze(-1)
+    for start in range(0, n_samples, segment):
+        if live.numel() == 0:
+            break
+        u = torch.arange(start, min(start + segment, n_samples), dtype=o.dtype, device=o.device) + 0.5
+        t = near[live, None] + u * step[live, None]  # (R, s)
+        points = (o[live, None] + t.unsqueeze(-1) * d[live, None]).reshape(-1, 3)
+        keep = torch.ones(points.shape[0], dtype=torch.bool, device=o.device) if occupancy is None else \
+            occupancy.occupied(points)
+        sigma = points.new_zeros(points.shape[0])
+        index = keep.nonzero().squeeze(-1)
+        if index.numel():
+            sigma[index] = torch.cat([field.density(points[i]).to(o.dtype) for i in index.split(1 << 18)])
+        sigma = torch.nan_to_num(sigma, nan=0.0).clamp(0.0, 1e10).reshape(t.shape)
+        tau[live] += (sigma * step[live, None]).sum(-1)
+        live = live[tau[live] <= depth_needed]
+    return (tau > depth_needed).reshape(len(cameras), height, width)

@@ -1,0 +1,70 @@
+"""What the QA stage's ``parts_kept`` check measures: the GLB's silhouettes against the NeRF's from
+a few novel views (``morpheus_core.part_silhouettes`` compares them).
+
+The NeRF is what the photo and the prior agreed on before DMTet's fixed iso-level and floater
+removal; where it is opaque and the mesh is not, from any side, the mesh lost a part.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from morpheus_core.cameras import Cameras, OrbitConfig, orbit
+from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.part_silhouettes import PartComparison, compare_part_silhouettes
+from morpheus_core.render.textured import TexturedMesh, render_textured
+from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, render_silhouette
+from ops.nerf_fit import NERF_FILE
+from ops.stage_common import load_module
+
+SILHOUETTE_LEVEL = 0.5
+
+
+def part_cameras(n: int, elevation_deg: float) -> Cameras:
+    """``n`` azimuths evenly around the object, offset by half a step from the reference view (0°),
+    which the photo's mask already judges."""
+    azim = (torch.arange(n, dtype=torch.float64) + 0.5) * (360.0 / n)
+    azim = torch.where(azim > 180.0, azim - 360.0, azim).float()
+    cfg = OrbitConfig()  # the turntable's cameras: same distance and field of view
+    return orbit(elevation_deg, azim, cfg.distance, cfg.fov_deg, cfg.near, cfg.far)
+
+
+def load_nerf(nerf_dir: Path, device: torch.device) -> tuple[NerfField, OccupancyGrid | None]:
+    """The fitted field with every hash-grid level active (as ``dmtet.init_from_nerf`` reads it) and
+    its saved occupancy grid, which skips empty space exactly as the fit's own renders did."""
+    nerf, _, extra = load_module(Path(nerf_dir) / NERF_FILE, NerfField, NerfConfig, device)
+    nerf.update_step(1 << 30)
+    nerf.eval()
+    density = extra.get("occupancy")
+    if density is None or density.dim() != 3:
+        return nerf, None
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=int(density.shape[0])), nerf.bbox_radius).to(device)
+    grid.density.copy_(density.to(device))
+    return nerf, grid
+
+
+def nerf_silhouettes(nerf: NerfField, occupancy: OccupancyGrid | None, cameras: Cameras, resolution: int,
+                     n_samples: int) -> Tensor:
+    """(N, H, W) bool: the NeRF's opacity above one half."""
+    return render_silhouette(nerf, cameras, resolution, resolution, n_samples, occupancy, SILHOUETTE_LEVEL).cpu()
+
+
+@torch.no_grad()
+def asset_silhouettes(asset: TexturedMesh, cameras: Cameras, resolution: int) -> Tensor:
+    """(N, H, W) bool: the GLB's rendered opacity above one half."""
+    return render_textured(asset, cameras, resolution, resolution).opacity[..., 0].float().cpu() > SILHOUETTE_LEVEL
+
+
+def compare_with_nerf(asset: TexturedMesh, nerf_dir: Path | None, views: int, resolution: int, n_samples: int,
+                      elevation_deg: float, opening: int, margin: int, device: torch.device) -> PartComparison | None:
+    """The GLB against the NeRF from ``views`` novel views; None when there is no NeRF output (an
+    asset refined from an existing mesh has no NeRF stage)."""
+    if nerf_dir is None or not (Path(nerf_dir) / NERF_FILE).is_file():
+        return None
+    nerf, occupancy = load_nerf(Path(nerf_dir), device)
+    cameras = part_cameras(views, elevation_deg).to(device)
+    reference = nerf_silhouettes(nerf, occupancy, cameras, resolution, n_samples)
+    return compare_part_silhouettes(reference, asset_silhouettes(asset, cameras, resolution), opening, margin)
