@@ -23,7 +23,6 @@ import torch
 from assets_store.atomic import atomic_write
 from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
-from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.geometry.nerf_to_dmtet import (
     Conversion,
     ConversionConfig,
@@ -36,19 +35,17 @@ from morpheus_core.geometry.winding import winding_number
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
-from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
 from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
 from ops.colour_fit import fit_colour_field, jittered_surface_points
 from ops.guidance_settings import GuidanceSettings
 from ops.guided_task import GuidedTask, RenderedStep
-from ops.nerf_fit import NERF_FILE
+from ops.nerf_fit import load_nerf
 from ops.object_batch import StageJob
 from ops.optimise import BadStep, LoopConfig, LoopResult, ProgressFn
 from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
     ReferenceTarget,
     StageResult,
-    load_module,
     loop_metrics,
     novel_cameras,
     pick_device,
@@ -163,17 +160,11 @@ def _no_colour(points: torch.Tensor) -> torch.Tensor:
     return torch.zeros_like(points)
 
 
-def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_path: Path, cfg: DMTetFitConfig,
+def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_dir: Path, cfg: DMTetFitConfig,
                    device: torch.device, generator: torch.Generator) -> tuple[float, Conversion]:
     """SDF from the NeRF at the iso-level its silhouettes choose (``nerf_to_dmtet``), texture field
     fitted to its albedo; returns the fit MSE and the conversion (level, silhouette IoUs)."""
-    nerf, _, extra = load_module(nerf_path, NerfField, NerfConfig, device)
-    nerf.update_step(1 << 30)  # every level active, as at the end of stage 1a
-    occupancy = None
-    if "occupancy" in extra:
-        occupancy = OccupancyGrid(OccupancyGridConfig(resolution=extra["occupancy"].shape[0]), nerf.bbox_radius)
-        occupancy = occupancy.to(device)
-        occupancy.density.copy_(extra["occupancy"].to(device))
+    nerf, occupancy = load_nerf(nerf_dir, device)
     with torch.no_grad():
         conversion = convert(dmtet, nerf, cfg.conversion, occupancy)
         mesh = dmtet()
@@ -236,7 +227,7 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
         init_metrics = {}
         teacher = None
     else:
-        fit_mse, conversion = init_from_nerf(dmtet, texture, Path(nerf_dir) / NERF_FILE, cfg, dev, generator)
+        fit_mse, conversion = init_from_nerf(dmtet, texture, Path(nerf_dir), cfg, dev, generator)
         notes = [f"NeRF → DMTet at occupancy level {conversion.level:g}: mean silhouette IoU "
                  f"{conversion.iou:.3f} against the NeRF over {len(conversion.silhouettes.opacity)} views"]
         init_metrics = {"iso_level": conversion.level, "init_silhouette_iou": round(conversion.iou, 4)}

@@ -28,6 +28,7 @@ from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
 from ops.stage_common import (
     ReferenceTarget,
     StageResult,
+    load_module,
     loop_metrics,
     novel_cameras,
     pick_device,
@@ -150,6 +151,20 @@ def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: Pri
              progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
     """Run stage 1a for a prepared reference folder; writes into ``out_dir``."""
     return start_nerf(reference_dir, out_dir, cfg, priors, object_id, device, seed, suite).run(checkpoint_dir, progress)
+
+
+def load_nerf(nerf_dir: Path, device: torch.device) -> tuple[NerfField, OccupancyGrid | None]:
+    """The fitted field with every hash-grid level active (as at the end of stage 1a) and
+    its saved occupancy grid, which skips empty space exactly as the fit's own renders did."""
+    nerf, _, extra = load_module(Path(nerf_dir) / NERF_FILE, NerfField, NerfConfig, device)
+    nerf.update_step(1 << 30)
+    nerf.eval()
+    density = extra.get("occupancy")
+    if density is None or density.dim() != 3:
+        return nerf, None
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=int(density.shape[0])), nerf.bbox_radius).to(device)
+    grid.density.copy_(density.to(device))
+    return nerf, grid
 
 
 def small_field(levels: int = 8, log2_table: int = 15, hidden: int = 32) -> NerfConfig:

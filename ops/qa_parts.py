@@ -13,12 +13,11 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras, OrbitConfig, orbit
-from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.geometry.nerf import NerfField
 from morpheus_core.part_silhouettes import PartComparison, compare_part_silhouettes
 from morpheus_core.render.textured import TexturedMesh, render_textured
-from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, render_silhouette
-from ops.nerf_fit import NERF_FILE
-from ops.stage_common import load_module
+from morpheus_core.render.volume import OccupancyGrid, render_silhouette
+from ops.nerf_fit import NERF_FILE, load_nerf
 
 SILHOUETTE_LEVEL = 0.5
 
@@ -30,20 +29,6 @@ def part_cameras(n: int, elevation_deg: float) -> Cameras:
     azim = torch.where(azim > 180.0, azim - 360.0, azim).float()
     cfg = OrbitConfig()  # the turntable's cameras: same distance and field of view
     return orbit(elevation_deg, azim, cfg.distance, cfg.fov_deg, cfg.near, cfg.far)
-
-
-def load_nerf(nerf_dir: Path, device: torch.device) -> tuple[NerfField, OccupancyGrid | None]:
-    """The fitted field with every hash-grid level active (as ``dmtet.init_from_nerf`` reads it) and
-    its saved occupancy grid, which skips empty space exactly as the fit's own renders did."""
-    nerf, _, extra = load_module(Path(nerf_dir) / NERF_FILE, NerfField, NerfConfig, device)
-    nerf.update_step(1 << 30)
-    nerf.eval()
-    density = extra.get("occupancy")
-    if density is None or density.dim() != 3:
-        return nerf, None
-    grid = OccupancyGrid(OccupancyGridConfig(resolution=int(density.shape[0])), nerf.bbox_radius).to(device)
-    grid.density.copy_(density.to(device))
-    return nerf, grid
 
 
 def nerf_silhouettes(nerf: NerfField, occupancy: OccupancyGrid | None, cameras: Cameras, resolution: int,
