@@ -144,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config override for every schedule of the run (one configuration for all scenes)")
     ap.add_argument("--tag", default="", help="suffix of the result files (e.g. for a --set variant)")
+    ap.add_argument("--rows", default="", help="comma-separated ablation rows (default: every row)")
+    ap.add_argument("--seed-scenes", default="", help="comma-separated scenes for the extra ablation seeds "
+                                                      "(default: the ablation's scenes)")
     ap.add_argument("--jobs", type=int, default=1, help="scenes run in this many processes at once (the CPU threads "
                                                         "are shared out between them); results are the same")
     ap.add_argument("--ablation-seeds", default="0,1,2",
@@ -180,15 +183,19 @@ def main(argv: list[str] | None = None) -> int:
     if "ablations" in parts:
         t0 = time.perf_counter()
         seeds = [int(s) for s in args.ablation_seeds.split(",") if s]
-        calls = []
+        chosen_rows = tuple(r for r in ROWS if not args.rows or r.name in args.rows.split(","))
+        seed_names = [n for n in args.seed_scenes.split(",") if n] or list(names)
+        calls, called = [], {}
         for i, seed in enumerate(seeds):
             schedule = size.ablation if seed == 0 else replace(
                 size.ablation, label=f"{size.ablation.label}-seed{seed}",
                 overrides=(*size.ablation.overrides, f"seed={seed}"))
-            rows = ROWS if i == 0 else tuple(r for r in ROWS if r.name in MAIN_ROWS)
-            calls += [(run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, rows)) for n in names]
+            rows = chosen_rows if i == 0 else tuple(r for r in chosen_rows if r.name in MAIN_ROWS)
+            called[seed] = list(names) if i == 0 else seed_names
+            calls += [(run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, rows))
+                      for n in called[seed]]
         results = iter(run_calls(calls, args.jobs))
-        by_seed = {seed: [r for _ in names for r in next(results)] for seed in seeds}
+        by_seed = {seed: [r for _ in called[seed] for r in next(results)] for seed in seeds}
         records = by_seed[seeds[0]]
         _write(args.results, f"quality_ablations_{tag}", {
             **common, "title": "Ablations on synthetic scenes with oracle priors", "wall_s": time.perf_counter() - t0,
@@ -196,7 +203,8 @@ def main(argv: list[str] | None = None) -> int:
             "seed_records": {str(k): v for k, v in by_seed.items()},
             "about": _ABOUT_ABLATIONS.format(schedule=size.ablation, scenes=", ".join(names),
                                              oracle=common["oracle"], eval=size.eval)},
-            ablation_markdown(records) + "\n### Spread over pipeline seeds\n\n" + seed_spread_markdown(by_seed)
+            ablation_markdown(records) + f"\n### Spread over pipeline seeds (scenes: {', '.join(seed_names)})\n\n"
+            + seed_spread_markdown({k: [r for r in v if r["scene"] in seed_names] for k, v in by_seed.items()})
             + "\n### Per scene\n\n" + per_scene_markdown(records))
     if "error_time" in parts:
         t0 = time.perf_counter()

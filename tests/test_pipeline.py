@@ -71,6 +71,13 @@ def test_manifests_record_what_people_need(finished: tuple[Store, PhotoOutcome])
     log = read_runlog(store.stage_dir(KEY, "nerf_fit") / "runlog.parquet")
     assert [r["step"] for r in log][-1] == 150 and all("ref_psnr" in r and "wall_s" in r for r in log)
     assert not list(store.checkpoint_dir(KEY, "nerf_fit").glob("**/*.ckpt"))  # cleared after commit
+    # The conversion's decision and its silhouette check, before and after optimising.
+    dmtet = manifest(store, KEY, "dmtet")
+    assert dmtet.metrics["iso_level"] in draft().dmtet.conversion.levels
+    assert 0.8 < dmtet.metrics["init_silhouette_iou"] <= 1.0 and 0.8 < dmtet.metrics["final_silhouette_iou"] <= 1.0
+    assert any("occupancy level" in n for n in dmtet.notes)
+    log = read_runlog(store.stage_dir(KEY, "dmtet") / "runlog.parquet")
+    assert all(r["nerf_silhouette"] is not None and math.isfinite(r["nerf_silhouette"]) for r in log)
 
 
 def test_second_run_is_cached_and_one_change_reruns_only_what_follows(
