@@ -1,19 +1,24 @@
 """Object masks from product photos on near-uniform backgrounds, and mask clean-up maths.
 
-Classical chain: model the background from the image border in CIE Lab, threshold the colour
-distance to it, clean the mask up (morphology, holes, largest component) and refine it with
-GrabCut seeded from that mask. Arrays are numpy: images H×W×3 float in [0, 1], masks H×W bool.
+Classical chain: model the background from the image border in CIE Lab; seed the object from
+two cues: the colour distance to that background (with shadows down-weighted), and regions
+that step edges outline against it at a contrast set from the backdrop's own noise
+(``mask_edges``: a white product on a white sweep); clean the seed up (morphology, holes, every
+plausible part: ``mask_parts``) and refine it with GrabCut. Arrays are numpy: images H×W×3 float
+in [0, 1], masks H×W bool.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 import torch
 
 from morpheus_core.color import rgb_to_lab
+from morpheus_core.mask_edges import EdgeCue, EdgeParams, edge_cue
+from morpheus_core.mask_parts import PartRecord, PartRules, select_parts
 
 
 @dataclass(frozen=True)
@@ -33,6 +38,10 @@ class ClassicalParams:
     # GrabCut may wander off on low-contrast photos: keep the seed mask when the refined mask
     # overlaps it by less than this IoU.
     grabcut_min_iou: float = 0.7
+    edges: EdgeParams = field(default_factory=EdgeParams)
+    parts: PartRules = field(default_factory=PartRules)
+    # An outlined region joins the seed when the colour seed covers less than this share of it.
+    max_colour_overlap: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -42,6 +51,10 @@ class ClassicalResult:
     background_spread: float  # 90th percentile ΔE of the border around the fitted background
     threshold: float
     grabcut_used: bool
+    colour_seed: np.ndarray  # what the colour cue alone found (cleaned)
+    edges: EdgeCue
+    parts: tuple[PartRecord, ...]  # every component of the final mask, kept or dropped, with why
+    cue_pixels: np.ndarray  # pixels either cue marked before morphology (the mask's fill evidence)
 
 
 def to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -119,23 +132,15 @@ def fill_holes(mask: np.ndarray, background: np.ndarray | None = None, min_open_
     return filled
 
 
-def largest_component(mask: np.ndarray) -> np.ndarray:
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return np.zeros_like(mask, dtype=bool)
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return labels == best
-
-
-def clean_mask(mask: np.ndarray, radius: int, background: np.ndarray | None = None) -> np.ndarray:
-    """Close (bridge printed marks and hairline gaps), open (drop specks), keep the largest part,
-    fill its holes. Closing first matters: fine print on a light label is a scatter of marks that
-    opening alone would erase, splitting the product in two."""
+def close_and_open(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Close (bridge printed marks and hairline gaps), then open (drop specks). Closing first
+    matters: fine print on a light label is a scatter of marks that opening alone would erase,
+    splitting the product in two."""
     m = mask.astype(np.uint8)
     if radius > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, _disk(2 * radius))
         m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disk(radius))
-    return fill_holes(largest_component(m.astype(bool)), background)
+    return m.astype(bool)
 
 
 def shadow_like(lab: np.ndarray, background: np.ndarray, tolerance: float) -> np.ndarray:
@@ -175,6 +180,17 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
+def _add_outlined(colour_seed: np.ndarray, outlined: np.ndarray, max_overlap: float) -> np.ndarray:
+    """The colour seed plus every outlined region it mostly misses (the colour cue is weaker there)."""
+    n, labels = cv2.connectedComponents(outlined.astype(np.uint8), connectivity=8)
+    seed = colour_seed.copy()
+    for i in range(1, n):
+        region = labels == i
+        if colour_seed[region].mean() < max_overlap:
+            seed |= region
+    return seed
+
+
 def classical_segment(rgb: np.ndarray, params: ClassicalParams | None = None) -> ClassicalResult:
     """Segment the product from a near-uniform background (see the module docstring)."""
     p = params or ClassicalParams()
@@ -184,11 +200,18 @@ def classical_segment(rgb: np.ndarray, params: ClassicalParams | None = None) ->
     radius = max(1, round(p.morph_fraction * float(np.hypot(*rgb.shape[:2]))))
     # "Certainly background" uses the plain ΔE: shading-darkened object edges must stay undecided.
     certain_bg = np.linalg.norm(lab - background, axis=-1) < 0.5 * p.distance_threshold
-    seed = clean_mask(dist > p.distance_threshold, radius, certain_bg)
+    colour_seed = fill_holes(close_and_open(dist > p.distance_threshold, radius), certain_bg)
+    cue = edge_cue(lab, background, border_ring(rgb.shape[:2], p.border_fraction), p.edges)
+    # Outlined regions are product even where their colour matches a dimmed backdrop.
+    shadow = shadow_like(lab, background, p.shadow_tolerance) & ~cue.regions
+    certain_bg &= ~cue.regions
+    seed = _add_outlined(colour_seed, cue.regions, p.max_colour_overlap)
+    cue_pixels = (dist > p.distance_threshold) | cue.regions
+    seed, parts = select_parts(fill_holes(seed, certain_bg), p.parts, shadow)
     if not seed.any():
-        return ClassicalResult(seed, seed, spread, p.distance_threshold, False)
-    doubtful = shadow_like(lab, background, p.shadow_tolerance)
-    refined = grabcut_refine(rgb, seed, certain_bg, doubtful, p.grabcut_iterations, 2 * radius)
-    refined = clean_mask(refined, radius, certain_bg)
+        return ClassicalResult(seed, seed, spread, p.distance_threshold, False, colour_seed, cue, parts, cue_pixels)
+    refined = grabcut_refine(rgb, seed, certain_bg, shadow, p.grabcut_iterations, 2 * radius)
+    refined, refined_parts = select_parts(fill_holes(close_and_open(refined, radius), certain_bg), p.parts, shadow)
     use = p.grabcut_iterations > 0 and iou(refined, seed) >= p.grabcut_min_iou
-    return ClassicalResult(refined if use else seed, seed, spread, p.distance_threshold, use)
+    return ClassicalResult(refined if use else seed, seed, spread, p.distance_threshold, use, colour_seed, cue,
+                           refined_parts if use else parts, cue_pixels)

@@ -113,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     prep.add_argument("--border-ratio", type=float, default=0.1, help="empty margin per side (default 0.1)")
     prep.add_argument("--max-megapixels", type=float, default=40.0, help="refuse larger photos (default 40)")
     prep.add_argument("--hf-threshold", type=float, default=0.08, help="skip high-pass refinement below this")
+    prep.add_argument("--min-confidence", type=float, default=None,
+                      help="stop a photo whose mask confidence is below this (default: SegmentConfig's; 0 accepts all)")
     run = sub.add_parser("run", help="photo(s) -> textured GLB: every stage, cached and resumable, in --out")
     run.add_argument("photo", type=Path, help="a photo, or a folder of photos")
     run.add_argument("--out", type=Path, required=True, help="the asset store: <out>/<photo-key>/<stage>/")
@@ -264,7 +266,10 @@ def prepare(args: argparse.Namespace) -> int:
     try:
         cfg = PrepareConfig(
             load=LoadConfig(max_pixels=int(args.max_megapixels * 1e6)),
-            segment=SegmentConfig(use_rembg=not args.no_rembg, rembg_model=args.rembg_model),
+            segment=replace(SegmentConfig(use_rembg=not args.no_rembg, rembg_model=args.rembg_model),
+                            **({} if args.min_confidence is None else {
+                                "min_confidence": args.min_confidence,
+                                "ok_confidence": max(args.min_confidence, SegmentConfig.ok_confidence)})),
             border_ratio=args.border_ratio,
         )
         plan_cfg = replace(PlanConfig(), hf_threshold=args.hf_threshold)

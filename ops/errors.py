@@ -28,3 +28,7 @@ class ImageTooLargeError(InvalidImageError):
 
 class SegmentationError(PreparationError):
     """No usable object mask: empty, or too small to be the product."""
+
+
+class LowConfidenceError(SegmentationError):
+    """A mask was found but does not look like one product on a plain backdrop (confidence too low)."""

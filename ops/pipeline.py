@@ -40,7 +40,7 @@ from ops.stage_common import StageResult, save_mask_overlay
 log = logging.getLogger("morpheus3d")
 
 STAGES = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake", "qa")
-REFERENCE_CODE_VERSION = "reference-2"  # 2: writes the mask-overlay preview
+REFERENCE_CODE_VERSION = "reference-3"  # 2: the mask-overlay preview; 3: edge cue, every part, confidence
 CODE_VERSIONS = {"reference": REFERENCE_CODE_VERSION, "nerf_fit": nerf_fit.CODE_VERSION,
                  "dmtet": dmtet_stage.CODE_VERSION, "texture_refine": texture_refine.CODE_VERSION,
                  "uv_bake": uv_bake.CODE_VERSION, "qa": qa.CODE_VERSION}
@@ -278,6 +278,7 @@ class PhotoRun:
             plan = plan_reference(out, cfg.plan)
             save_mask_overlay(out, out)
             return StageResult({"method": info.method, "area_fraction": round(info.area_fraction, 4),
+                                "parts": info.kept_parts, "mask_confidence": info.confidence["score"],
                                 "warnings": len(info.warnings), "plan": plan.summary()},
                                "none (segmentation)", "cpu", list(info.warnings))
 

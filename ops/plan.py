@@ -103,7 +103,9 @@ def _segmentation(info: ReferenceInfo) -> Decision:
     if info.method == "alpha":
         return Decision("skip", "alpha", "the photo's own alpha channel is the mask; no segmentation needed")
     how = f"u2net model {info.model_path}" if info.method == "rembg" else "classical border-colour + GrabCut chain"
-    return Decision("run", info.method, f"mask segmented with the {how}")
+    score = float(info.confidence["score"])
+    return Decision("run", info.method, f"mask segmented with the {how}: {info.kept_parts} part(s), "
+                    f"confidence {score:.2f}", {"parts": info.kept_parts, "confidence": score})
 
 
 def _refinement(rgb: np.ndarray, alpha: np.ndarray, cfg: PlanConfig) -> Decision:

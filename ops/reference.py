@@ -7,6 +7,7 @@ is the completion marker; ``read_reference`` treats a folder without a valid one
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -18,11 +19,12 @@ import numpy as np
 from PIL import Image
 
 from morpheus_core.imaging import bbox, recentre
+from morpheus_core.mask_parts import PartRecord
 from ops.errors import PreparationError
 from ops.photo import LoadConfig, load_photo
 from ops.segment import ChainStep, SegmentConfig, Segmenter
 
-SCHEMA = 1
+SCHEMA = 2  # 2: the mask's parts (kept and dropped, with why) and its confidence
 REFERENCE_FILE = "reference.json"
 
 
@@ -58,11 +60,18 @@ class ReferenceInfo:
     border_ratio: float
     files: dict[str, str]
     config: dict[str, Any]
+    # Every connected part of the mask, largest first; bboxes in source pixels like ``bbox``.
+    parts: tuple[PartRecord, ...] = ()
+    confidence: dict[str, Any] = field(default_factory=dict)  # score, factors, measurements
     schema: int = SCHEMA
 
     @property
     def status(self) -> str:
         return "warning" if self.warnings else "ok"
+
+    @property
+    def kept_parts(self) -> int:
+        return sum(p.kept for p in self.parts)
 
     @property
     def object_long_side_px(self) -> int:
@@ -81,6 +90,7 @@ class ReferenceInfo:
         if data.get("schema") != SCHEMA:
             raise ValueError(f"reference schema {data.get('schema')!r}, expected {SCHEMA}")
         data["chain"] = tuple(ChainStep(**c) for c in data["chain"])
+        data["parts"] = tuple(PartRecord(**{**p, "bbox": tuple(p["bbox"])}) for p in data["parts"])
         for key in ("source_size", "loaded_size", "bbox", "notes", "warnings"):
             data[key] = tuple(data[key])
         return cls(**data)
@@ -160,6 +170,10 @@ def prepare_reference(photo_path: Path | str, out_dir: Path | str, cfg: PrepareC
             bbox=(round(box[0] * sx), round(box[1] * sy), round(box[2] * sx), round(box[3] * sy)),
             area_fraction=float(binary.mean()), warnings=result.warnings, border_ratio=cfg.border_ratio,
             files=files, config=cfg.to_dict(),
+            parts=tuple(dataclasses.replace(p, bbox=(round(p.bbox[0] * sx), round(p.bbox[1] * sy),
+                                                     round(p.bbox[2] * sx), round(p.bbox[3] * sy)))
+                        for p in result.parts),
+            confidence=asdict(result.confidence),
         )
         (tmp / REFERENCE_FILE).write_text(info.to_json(), encoding="utf-8")
         _fsync(tmp / REFERENCE_FILE)

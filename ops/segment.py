@@ -7,6 +7,7 @@ alpha is then resized back to the loaded photo.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,8 +15,10 @@ import cv2
 import numpy as np
 
 from morpheus_core.imaging import fit_within, resize, touched_borders
-from morpheus_core.mask_ops import ClassicalParams, classical_segment, fill_holes, largest_component
-from ops.errors import SegmentationError
+from morpheus_core.mask_confidence import ConfidenceParams, MaskConfidence, mask_confidence
+from morpheus_core.mask_ops import ClassicalParams, classical_segment, fill_holes
+from morpheus_core.mask_parts import PartRecord, select_parts
+from ops.errors import LowConfidenceError, SegmentationError
 from ops.photo import Photo
 from ops.rembg_local import U2NetSession, find_model, model_candidates
 
@@ -31,6 +34,16 @@ class SegmentConfig:
     border_touch_fraction: float = 0.01  # share of an image edge covered by the object before warning
     # Classical segmentation assumes a near-uniform background: warn above this border ΔE spread.
     max_background_spread: float = 8.0
+    confidence: ConfidenceParams = field(default_factory=ConfidenceParams)
+    # Mask confidence below ``ok_confidence`` is a warning; below ``min_confidence`` the photo stops
+    # here (LowConfidenceError) instead of sending a doubtful mask on to the GPU stages.
+    ok_confidence: float = 0.5
+    min_confidence: float = 0.15
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_confidence <= self.ok_confidence <= 1.0:
+            raise ValueError(f"need 0 ≤ min_confidence ≤ ok_confidence ≤ 1, got {self.min_confidence}, "
+                             f"{self.ok_confidence}")
 
 
 @dataclass(frozen=True)
@@ -47,6 +60,8 @@ class MaskResult:
     chain: tuple[ChainStep, ...]
     warnings: tuple[str, ...]
     model_path: Path | None
+    confidence: MaskConfidence
+    parts: tuple[PartRecord, ...]  # bboxes in the loaded photo's pixels
 
 
 def mask_problems(mask: np.ndarray, cfg: SegmentConfig) -> tuple[str | None, list[str]]:
@@ -65,11 +80,22 @@ def mask_problems(mask: np.ndarray, cfg: SegmentConfig) -> tuple[str | None, lis
     return None, warnings
 
 
-def _tidy(alpha: np.ndarray) -> np.ndarray:
-    """Keep the main object and its holes; zero stray haze elsewhere (a soft edge is kept)."""
-    keep = fill_holes(largest_component(alpha >= 0.5))
-    keep = cv2.dilate(keep.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    return np.where(keep, alpha, 0.0).astype(np.float32)
+ALPHA_CONFIDENCE = MaskConfidence(1.0, {"alpha": 1.0}, {"alpha": 1.0})  # the photo's own alpha is the truth
+LOW_CONFIDENCE_FIX = ("this does not look like a product on a plain backdrop: supply a PNG with an alpha channel, "
+                      "install a u2net model under $U2NET_HOME (or pass --rembg-model), or photograph the product on "
+                      "a plainer backdrop; to accept such masks lower segment.min_confidence")
+
+
+def _tidy(alpha: np.ndarray) -> tuple[np.ndarray, tuple[PartRecord, ...]]:
+    """Keep the product's parts and their holes; zero stray haze elsewhere (a soft edge is kept)."""
+    parts_mask, parts = select_parts(alpha >= 0.5)
+    keep = cv2.dilate(fill_holes(parts_mask).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return np.where(keep, alpha, 0.0).astype(np.float32), parts
+
+
+def _scaled(parts: tuple[PartRecord, ...], sx: float, sy: float) -> tuple[PartRecord, ...]:
+    return tuple(dataclasses.replace(r, bbox=(round(r.bbox[0] * sx), round(r.bbox[1] * sy), round(r.bbox[2] * sx),
+                                              round(r.bbox[3] * sy))) for r in parts)
 
 
 class Segmenter:
@@ -98,17 +124,21 @@ class Segmenter:
                 raise SegmentationError(photo.path, f"alpha channel: {fatal}", "export the photo with the product "
                                         "visible, or without an alpha channel so it gets segmented")
             chain.append(ChainStep("alpha", "used", "photo has a meaningful alpha channel: segmentation left out"))
-            return MaskResult(photo.alpha, "alpha", tuple(chain), tuple(warnings), None)
+            parts = select_parts(photo.alpha >= 0.5)[1]
+            return MaskResult(photo.alpha, "alpha", tuple(chain), tuple(warnings), None, ALPHA_CONFIDENCE, parts)
         chain.append(ChainStep("alpha", "skipped", "photo has no (non-trivial) alpha channel"))
         h, w = photo.rgb.shape[:2]
         small = resize(photo.rgb, fit_within((w, h), self.cfg.work_size))
         session, detail = self._rembg()
         if session is not None:
-            alpha = _tidy(session.predict(small))
+            alpha, parts = _tidy(session.predict(small))
             fatal, warnings = mask_problems(alpha >= 0.5, self.cfg)
             if fatal is None:
-                chain.append(ChainStep("rembg", "used", detail))
-                return MaskResult(self._full(alpha, (w, h)), "rembg", tuple(chain), tuple(warnings), session.model_path)
+                confidence = mask_confidence(alpha >= 0.5, sum(r.kept for r in parts), self.cfg.confidence)
+                self._judge(photo, confidence, warnings, "rembg mask")
+                chain.append(ChainStep("rembg", "used", f"{detail}, confidence {confidence.score:.2f}"))
+                return MaskResult(self._full(alpha, (w, h)), "rembg", tuple(chain), tuple(warnings), session.model_path,
+                                  confidence, _scaled(parts, w / alpha.shape[1], h / alpha.shape[0]))
             chain.append(ChainStep("rembg", "rejected", f"{detail}: {fatal}"))
         else:
             chain.append(ChainStep("rembg", "skipped", detail))
@@ -126,12 +156,30 @@ class Segmenter:
         if result.background_spread > self.cfg.max_background_spread:
             warnings.insert(0, f"background is not near-uniform (border ΔE spread {result.background_spread:.1f} > "
                             f"{self.cfg.max_background_spread:g}): the classical mask may be wrong")
-        detail = f"border ΔE spread {result.background_spread:.1f}, " + (
-            "refined by GrabCut" if result.grabcut_used else "GrabCut result discarded (diverged from the seed)")
+        kept = sum(r.kept for r in result.parts)
+        confidence = mask_confidence(result.mask, kept, self.cfg.confidence, backdrop_spread=result.background_spread,
+                                     edges=result.edges.edges, cue_pixels=result.cue_pixels)
+        self._judge(photo, confidence, warnings, "classical mask")
+        outlined = int((result.edges.regions & ~result.colour_seed).sum())
+        grabcut = "refined by GrabCut" if result.grabcut_used else "GrabCut result discarded (diverged from the seed)"
+        detail = (f"border ΔE spread {result.background_spread:.1f}, {kept} part(s), "
+                  f"confidence {confidence.score:.2f}, {grabcut}"
+                  + (f", {outlined} px found by the edge cue only" if outlined else ""))
         chain.append(ChainStep("classical", "used", detail))
         h, w = photo.rgb.shape[:2]
+        sx, sy = w / small.shape[1], h / small.shape[0]
         return MaskResult(self._full(result.mask.astype(np.float32), (w, h)), "classical", tuple(chain),
-                          tuple(warnings), None)
+                          tuple(warnings), None, confidence, _scaled(result.parts, sx, sy))
+
+    def _judge(self, photo: Photo, confidence: MaskConfidence, warnings: list[str], what: str) -> None:
+        """Stop a photo whose mask confidence is below ``min_confidence``; warn below ``ok_confidence``."""
+        weakest = ", ".join(confidence.weakest())
+        if confidence.score < self.cfg.min_confidence:
+            raise LowConfidenceError(photo.path, f"{what} confidence {confidence.score:.2f} is below "
+                                     f"{self.cfg.min_confidence:g} (weakest: {weakest})", LOW_CONFIDENCE_FIX)
+        if confidence.score < self.cfg.ok_confidence:
+            warnings.append(f"{what} confidence {confidence.score:.2f} is below {self.cfg.ok_confidence:g} "
+                            f"(weakest: {weakest}): check the mask preview")
 
     @staticmethod
     def _full(alpha: np.ndarray, size: tuple[int, int]) -> np.ndarray:

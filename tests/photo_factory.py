@@ -133,3 +133,94 @@ def segmentation_set(seed: int) -> list[PhotoSpec]:
     for i, (shape, bg) in enumerate((s, b) for s in SHAPES for b in BACKGROUNDS):
         specs.append(PhotoSpec(shape, bg, TEXTURES[i % len(TEXTURES)], seed * 1000 + i))
     return specs
+
+
+def _grey_for_lightness(lightness: float) -> float:
+    """The sRGB grey level (0–1) whose CIE L* is ``lightness`` (inverse of the sRGB → L* curve)."""
+    f = (lightness + 16.0) / 116.0
+    y = f**3 if f**3 > 216 / 24389 else (lightness / (24389 / 27))
+    return float(12.92 * y if y <= 0.0031308 else 1.055 * y ** (1 / 2.4) - 0.055)
+
+
+def _lightness_of_grey(g: float) -> float:
+    y = g / 12.92 if g <= 0.04045 else ((g + 0.055) / 1.055) ** 2.4
+    return float(116.0 * y ** (1 / 3) - 16.0 if y > 216 / 24389 else y * 24389 / 27)
+
+
+def white_on_white_photo(delta_e: float, seed: int, shape: str = "cylinder",
+                         size: int = 320) -> tuple[np.ndarray, np.ndarray]:
+    """A near-white product on a white sweep, ``delta_e`` CIE L* below the backdrop behind it.
+
+    What such catalog shots hold: a backdrop ≈ 252/255 with a little fall-off, a grey seam line
+    where the floor meets the wall (across the whole frame, partly behind the object), gentle
+    shading on the object (±1 ΔE), a soft contact shadow and a blurred cast shadow, sensor noise.
+    """
+    rng = np.random.default_rng(seed)
+    n = 2 * size
+    ys, xs = (np.mgrid[0:n, 0:n].astype(np.float64) + 0.5) / n
+    inside, cx, rx, floor_y = _SHAPE_FN[shape](xs, ys, rng)
+    backdrop = rng.uniform(0.975, 0.99)
+    bg = np.full((n, n), backdrop) * (1.0 - 0.012 * ys)  # fall-off of about 1 ΔE top to bottom
+    seam_y = rng.uniform(0.55, 0.65)
+    bg = bg * (1 - 0.12 * np.exp(-(((ys - seam_y) * n / 1.2) ** 2)))  # a thin grey line, 2–3 px at output size
+    object_l = _lightness_of_grey(backdrop * (1.0 - 0.012 * 0.5)) - delta_e
+    grey = _grey_for_lightness(object_l)
+    u = np.clip((xs - cx) / rx, -1, 1)
+    shade = 1.0 + 0.012 * (np.clip(-0.4 * u + 0.9 * np.sqrt(1 - u**2), 0, 1) - 0.5)  # ≈ ±1 ΔE
+    obj = np.clip(grey * shade, 0, 1)
+    contact = np.exp(-(((xs - cx) / (rx * 1.3)) ** 2 + ((ys - floor_y) / 0.025) ** 2))
+    cast = cv2.GaussianBlur(inside.astype(np.float32), (0, 0), n * 0.03)
+    cast = np.roll(cast, (int(0.02 * n), int(0.06 * n)), axis=(0, 1))
+    bg = bg * (1 - 0.25 * contact) * (1 - 0.05 * cast)  # high-key light: a faint cast shadow
+    img = np.repeat(np.where(inside, obj, bg)[..., None], 3, axis=-1) * np.array([1.0, 0.997, 0.99])
+    img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+    cover = cv2.resize(inside.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
+    img = img + rng.normal(0.0, 1.5 / 255, img.shape)
+    return (np.clip(img, 0, 1) * 255).round().astype(np.uint8), cover >= 0.5
+
+
+def multipart_photo(parts: int, gap_px: int, seed: int, background: str = "white",
+                    size: int = 512) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``parts`` separate objects in a row, ``gap_px`` output pixels apart (a pair of shoes, a cutlery
+    set, earrings). Returns the photo and one true mask per part (each part's own contact shadow and
+    a blurred cast shadow of them all; part sizes vary down to 60 % of the largest)."""
+    rng = np.random.default_rng(seed)
+    n = 2 * size
+    ys, xs = (np.mgrid[0:n, 0:n].astype(np.float64) + 0.5) / n
+    gap = 2 * gap_px / n
+    widths = rng.uniform(0.6, 1.0, parts)
+    widths *= min(0.8 - gap * (parts - 1), 0.2 * parts) / widths.sum()
+    x = 0.5 - (widths.sum() + gap * (parts - 1)) / 2
+    bg = _background(background, xs, ys, rng)
+    img, masks, all_parts = bg.copy(), [], np.zeros((n, n), bool)
+    for w in widths:
+        cx, half = x + w / 2, w / 2
+        height = rng.uniform(0.25, 0.45)
+        top, bottom = 0.72 - height, 0.72
+        kind = rng.integers(3)
+        if kind == 0:  # an ellipse
+            part = ((xs - cx) / half) ** 2 + ((ys - (top + bottom) / 2) / (height / 2)) ** 2 <= 1
+        elif kind == 1:  # a rounded rectangle
+            r = 0.3 * half
+            qx, qy = np.maximum(np.abs(xs - cx) - (half - r), 0), np.maximum(np.abs(ys - (top + bottom) / 2)
+                                                                             - (height / 2 - r), 0)
+            part = qx**2 + qy**2 <= r**2
+        else:  # a bottle-like profile: narrow top, wide base
+            t = np.clip((ys - top) / height, 0, 1)
+            part = (np.abs(xs - cx) <= half * (0.35 + 0.65 * np.sqrt(t))) & (ys >= top) & (ys <= bottom)
+        base = np.array(colorsys.hsv_to_rgb(rng.uniform(0, 1), rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.8)))
+        u = np.clip((xs - cx) / half, -1, 1)
+        shade = 0.6 + 0.4 * np.clip(-0.4 * u + 0.9 * np.sqrt(1 - u**2), 0, 1)
+        contact = np.exp(-(((xs - cx) / (half * 1.2)) ** 2 + ((ys - bottom) / 0.02) ** 2))
+        img = img * (1 - 0.35 * contact[..., None])
+        img = np.where(part[..., None], np.clip(base * shade[..., None], 0, 1), img)
+        masks.append(part)
+        all_parts |= part
+        x += w + gap
+    cast = np.roll(cv2.GaussianBlur(all_parts.astype(np.float32), (0, 0), n * 0.02), (int(0.02 * n), int(0.04 * n)),
+                   axis=(0, 1))
+    img = np.where(all_parts[..., None], img, img * (1 - 0.2 * cast[..., None]))
+    img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+    img = img + rng.normal(0.0, 1.5 / 255, img.shape)
+    truths = [cv2.resize(m.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) >= 0.5 for m in masks]
+    return (np.clip(img, 0, 1) * 255).round().astype(np.uint8), truths

@@ -96,7 +96,7 @@ SKIMAGE_PHOTOS = ["astronaut.png", "coffee.png", "chelsea.png", "rocket.jpg", "m
                   "camera.png", "hubble_deep_field.jpg", "logo.png", "horse.png", "text.png", "retina.jpg"]
 
 
-def test_real_photos_give_a_plausible_mask_or_a_clear_warning(tmp_path: Path) -> None:
+def test_real_photos_give_a_plausible_mask_a_warning_or_a_typed_failure(tmp_path: Path) -> None:
     data = pytest.importorskip("skimage.data")
     folder = Path(data.__file__).parent
     segmenter = Segmenter()
@@ -106,7 +106,7 @@ def test_real_photos_give_a_plausible_mask_or_a_clear_warning(tmp_path: Path) ->
             info = prepare_reference(folder / name, tmp_path / name.split(".")[0], segmenter=segmenter)
         except PreparationError as exc:  # typed, names the file: acceptable; anything else fails the test
             assert str(folder / name) in str(exc)
-            outcomes[name] = "error"
+            outcomes[name] = type(exc).__name__
             continue
         mask = np.asarray(Image.open(tmp_path / name.split(".")[0] / "mask_256.png")) >= 128
         plausible = 0.005 <= info.area_fraction <= 0.9 and 0.02 < mask.mean() < 0.95
@@ -114,9 +114,9 @@ def test_real_photos_give_a_plausible_mask_or_a_clear_warning(tmp_path: Path) ->
         outcomes[name] = info.status + "/" + info.method
         notes[name] = info.notes
     print(outcomes)
-    # Cluttered scenes are not product shots: the classical chain must say so, not pass silently.
-    for name in ("astronaut.png", "coffee.png", "chelsea.png", "rocket.jpg", "motorcycle_left.png"):
-        assert outcomes[name] == "warning/classical", outcomes
+    # Cluttered scenes are not product shots: stopped with the fix (never passed on silently).
+    for name in ("astronaut.png", "coffee.png", "chelsea.png", "rocket.jpg", "motorcycle_left.png", "camera.png"):
+        assert outcomes[name] == "LowConfidenceError", outcomes
     # logo.png is RGBA with a fully opaque alpha: that alpha carries no mask and must be ignored.
     assert outcomes["logo.png"] == "ok/classical" and "alpha channel ignored" in notes["logo.png"][0]
 

@@ -11,10 +11,10 @@ from morpheus_core.mask_ops import (
     fill_holes,
     fit_background,
     iou,
-    largest_component,
     shadow_like,
     to_lab,
 )
+from morpheus_core.mask_parts import select_parts
 from tests.photo_factory import product_photo, segmentation_set
 
 SPECS = segmentation_set(seed=11)
@@ -64,10 +64,22 @@ def test_fill_holes_keeps_handles_open_and_fills_print() -> None:
     assert fill_holes(mask)[50, 50]  # without colour evidence every hole is filled
 
 
-def test_largest_component() -> None:
-    mask = np.zeros((50, 50), bool)
-    mask[5:10, 5:10] = True
-    mask[20:40, 20:40] = True
-    out = largest_component(mask)
-    assert out[30, 30] and not out[7, 7]
-    assert not largest_component(np.zeros((5, 5), bool)).any()
+def test_parts_are_kept_unless_specks_border_props_or_shadows() -> None:
+    mask = np.zeros((100, 100), bool)
+    mask[20:60, 10:40] = True  # the largest part
+    mask[25:55, 55:80] = True  # a second part, 62 % of it: kept
+    mask[80:82, 50:52] = True  # a speck: dropped
+    mask[0:30, 90:100] = True  # touches the border while the largest does not: dropped
+    mask[70:90, 10:30] = True  # a shadow-like part: dropped
+    shadow = np.zeros_like(mask)
+    shadow[70:90, 10:30] = True
+    kept, records = select_parts(mask, shadow=shadow)
+    assert kept[40, 20] and kept[40, 60] and not kept[81, 51] and not kept[10, 95] and not kept[80, 20]
+    assert [r.kept for r in records] == [True, True, False, False, False]
+    reasons = [r.reason for r in records]
+    assert reasons[0] == "the largest part" and reasons[1].startswith("kept: 62%")
+    assert any("border" in r for r in reasons) and any("shadow" in r for r in reasons)
+    assert any("of the largest part (minimum" in r for r in reasons)
+    assert records[1].bbox == (55, 25, 80, 55) and records[0].relative_area == 1.0
+    empty, none = select_parts(np.zeros((5, 5), bool))
+    assert not empty.any() and none == ()
