@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install browser demo dagster demo-frequency bench-quality test lint doctor clean
+.PHONY: install browser postgres demo dagster demo-frequency bench-quality test lint doctor clean
 
 install: $(STAMP)
 
@@ -25,7 +25,9 @@ $(STAMP): pyproject.toml
 
 # Dagster with a project-local instance (./dagster_home) watching the bundled photos by default;
 # MORPHEUS_PHOTO_DIR / MORPHEUS_STORE / MORPHEUS_PRESET … override (orchestration/settings.py).
-DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/dagster_home DAGSTER_SCHEDULE_GRPC_TIMEOUT_SECONDS=600 MORPHEUS_PHOTO_DIR=$${MORPHEUS_PHOTO_DIR:-examples/photos} \
+# DAGSTER_PG_HOST set: the Postgres instance (dagster_home_postgres/dagster.yaml), else SQLite.
+DAGSTER_HOME_DIR := $(if $(DAGSTER_PG_HOST),dagster_home_postgres,dagster_home)
+DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/$(DAGSTER_HOME_DIR) DAGSTER_SCHEDULE_GRPC_TIMEOUT_SECONDS=600 MORPHEUS_PHOTO_DIR=$${MORPHEUS_PHOTO_DIR:-examples/photos} \
 	MORPHEUS_STORE=$${MORPHEUS_STORE:-outputs/demo} MORPHEUS_PRESET=$${MORPHEUS_PRESET:-draft}
 
 # The main job on the bundled photos through Dagster: all six assets per photo, draft preset (a few
@@ -35,7 +37,9 @@ demo: $(STAMP)
 	$(VENV)/bin/morpheus3d report --store $${MORPHEUS_STORE:-outputs/demo} --out $${MORPHEUS_STORE:-outputs/demo}/report.html
 
 # The Dagster UI and daemon (sensor, nightly schedule, backfills) on http://127.0.0.1:3000.
+# The gpu pool's limit starts at this host's GPU count (kept when set before).
 dagster: $(STAMP)
+	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster gpu-pool
 	$(DAGSTER_ENV) $(VENV)/bin/dagster dev -w workspace.yaml -h 127.0.0.1 -p $${DAGSTER_PORT:-3000}
 
 demo-frequency: $(STAMP)
@@ -60,7 +64,19 @@ browser:
 	  fi; \
 	fi
 
-test: $(STAMP) browser
+# Debian's PostgreSQL server for tests/test_postgres_instance.py, the same way (never fails; the test skips).
+postgres:
+	@if ! command -v initdb >/dev/null 2>&1 && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
+	  if command -v apt-get >/dev/null 2>&1; then \
+	    echo "Installing postgresql (apt-get) for tests/test_postgres_instance.py"; \
+	    { $(APT) update -qq && $(APT) install -y -qq postgresql; } >/dev/null 2>&1 \
+	      || echo "Could not install PostgreSQL: tests/test_postgres_instance.py will skip"; \
+	  else \
+	    echo "No apt-get: tests/test_postgres_instance.py skips unless a PostgreSQL server is installed"; \
+	  fi; \
+	fi
+
+test: $(STAMP) browser postgres
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -q
 

@@ -1,7 +1,9 @@
-"""Small filesystem helpers shared by the store and checkpoints: directory fsync and pid liveness."""
+"""Small filesystem helpers shared by the store, checkpoints and GPU leases: directory fsync, pid
+liveness and advisory locks."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 from pathlib import Path
 
@@ -31,3 +33,34 @@ def pid_alive(pid: int) -> bool:
     except OverflowError:  # beyond the platform's pid_t: no such process
         return False
     return True
+
+
+def try_lock(path: Path) -> int | None:
+    """An exclusive ``flock`` on ``path`` (created if missing), or None when another process holds it.
+
+    The kernel releases it when the holder's descriptor closes, including when the process dies. On
+    NFS, Linux maps flock onto NFSv4 byte-range locks, which the server drops only after the dead
+    client's lease expires (about 90 s); on NFSv3 without a lock manager, locks are local only.
+    """
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def lock_held(path: Path) -> bool:
+    """Whether some process holds the ``flock`` on ``path`` (False when the file is gone)."""
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False

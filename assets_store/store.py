@@ -4,7 +4,7 @@ Layout under the root::
 
     <root>/<photo-key>/<stage>/...                      finished output, manifest.json written last
     <root>/<photo-key>/.checkpoints/<stage>/            checkpoints of a running stage
-    <root>/<photo-key>/.staging/<stage>.<pid>.<random>/ a stage being written
+    <root>/<photo-key>/.staging/<stage>.<pid>.<random>/ a stage being written (+ .lock: its writer lives)
 
 A stage is written into a fresh staging folder and swapped into place only when complete, so a
 reader (or a rerun after a crash) sees the previous finished output or the new one, never a mix.
@@ -26,13 +26,14 @@ from pathlib import Path
 from types import TracebackType
 
 from assets_store.atomic import atomic_write_text
-from assets_store.fsutil import fsync_dir, pid_alive
+from assets_store.fsutil import fsync_dir, lock_held, pid_alive, try_lock
 from assets_store.hashing import file_sha256
 from assets_store.keys import UnsafeKeyError, check_key, is_safe_key
 from assets_store.manifest import MANIFEST_FILE, FileRecord, Fingerprint, Manifest
 
 CHECKPOINTS_DIR = ".checkpoints"
 STAGING_DIR = ".staging"
+LOCK_SUFFIX = ".lock"  # <staging>/<folder>.lock: held by the folder's writer while it writes
 CATALOG_DIR = ".catalog"
 
 _STAGE_NAME = re.compile(r"[a-z0-9_]{1,64}")
@@ -143,24 +144,35 @@ class Store:
         shutil.rmtree(self.checkpoint_dir(key, stage), ignore_errors=True)
 
     def cleanup_staging(self, key: str) -> list[Path]:
-        """Remove staging folders left by processes that are no longer alive; returns what was removed.
+        """Remove staging folders whose writer is gone; returns what was removed.
 
-        A folder whose name does not parse is left alone (not ours to judge). A pid reused by a new
-        process keeps its folder until that process ends too; that only delays the cleanup.
+        A writer holds an ``flock`` on ``<folder>.lock`` beside its folder while it writes, so
+        liveness holds across hosts on shared storage (a process id means nothing on another
+        host) and a killed writer's folder is free at once. Folders from before these locks fall
+        back to their process id. A name that does not parse is left alone (not ours to judge).
         """
         staging = self.staging_root(key)
         removed: list[Path] = []
         if not staging.is_dir():
             return removed
         for entry in sorted(staging.iterdir()):
+            if entry.name.endswith(LOCK_SUFFIX):
+                continue
             match = _STAGING_NAME.fullmatch(entry.name)
-            if match is None or pid_alive(int(match["pid"])):
+            if match is None:
+                continue
+            lock = staging / (entry.name.removesuffix(".old") + LOCK_SUFFIX)
+            alive = lock_held(lock) if lock.exists() else pid_alive(int(match["pid"]))
+            if alive:
                 continue
             if entry.is_symlink() or not entry.is_dir():
                 entry.unlink(missing_ok=True)
             else:
                 shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
+        for lock in staging.glob(f"*{LOCK_SUFFIX}"):
+            if not (staging / lock.name.removesuffix(LOCK_SUFFIX)).exists() and not lock_held(lock):
+                lock.unlink(missing_ok=True)
         try:
             staging.rmdir()  # only succeeds when empty
         except OSError:
@@ -194,6 +206,7 @@ class StageWriter:
         self.stage = stage
         self._path: Path | None = None
         self._manifest: Manifest | None = None
+        self._lock: int | None = None
 
     @property
     def path(self) -> Path:
@@ -212,6 +225,8 @@ class StageWriter:
         staging.mkdir(parents=True, exist_ok=True)
         name = f"{self.stage}.{os.getpid()}.{secrets.token_hex(8)}"
         path = self.store._inside(staging / name)
+        # The lock exists before the folder: cleanup never sees this folder without its live lock.
+        self._lock = try_lock(staging / (name + LOCK_SUFFIX))
         path.mkdir()
         self._path = path
         return self
@@ -221,7 +236,10 @@ class StageWriter:
     ) -> None:
         if self._manifest is None and self._path is not None:
             shutil.rmtree(self._path, ignore_errors=True)
-        self._path = None
+        if self._path is not None and self._lock is not None:
+            (self._path.parent / (self._path.name + LOCK_SUFFIX)).unlink(missing_ok=True)
+            os.close(self._lock)
+        self._path, self._lock = None, None
 
     def _records(self) -> dict[str, FileRecord]:
         root = self.path

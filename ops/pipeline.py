@@ -15,9 +15,9 @@ import logging
 import shutil
 import time
 import traceback
-from collections.abc import Callable, Sequence
-from contextlib import ExitStack
-from dataclasses import dataclass, field, is_dataclass
+from collections.abc import Callable, Iterable, Sequence
+from contextlib import AbstractContextManager, ExitStack, nullcontext
+from dataclasses import dataclass, field, is_dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from assets_store.store import StageWriter, Store
 from ops import dmtet as dmtet_stage
 from ops import nerf_fit, qa, texture_refine, uv_bake
 from ops.config_tree import to_dict
+from ops.gpu_lease import GpuLease, leased_device
 from ops.object_batch import StageJob, run_jobs
 from ops.optimise import ProgressEvent, ProgressFn
 from ops.plan import StagePlan, plan_reference, read_plan
@@ -53,6 +54,7 @@ class StageOutcome:
     wall_s: float = 0.0
     manifest: Manifest | None = None
     error: str | None = None
+    lease: str | None = None  # the GPU lease it ran under (``ops.gpu_lease``), None on the CPU
 
 
 @dataclass
@@ -371,15 +373,27 @@ def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
     (the outcome says why)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
-    run = PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites)
     store.cleanup_staging(key)
-    for stage in [s for s in run.stages if STAGES.index(s) <= STAGES.index(until)]:
-        try:
-            run.run(stage)
-        except Exception as exc:
-            run.fail(stage, exc)
-            break
+    with leased_device(cfg.device) as (device, lease):
+        run = PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, init_mesh, progress, suites)
+        for stage in [s for s in run.stages if STAGES.index(s) <= STAGES.index(until)]:
+            try:
+                run.run(stage)
+            except Exception as exc:
+                run.fail(stage, exc)
+                break
+    _record_lease(run.outcome.stages, lease)
     return run.outcome
+
+
+def _record_lease(outcomes: Iterable[StageOutcome], lease: GpuLease | None) -> None:
+    for outcome in outcomes:
+        outcome.lease = None if lease is None else lease.describe()
+
+
+def _stage_device(cfg: PipelineConfig, stage: str) -> AbstractContextManager[tuple[str, GpuLease | None]]:
+    """The lease a single stage runs under: none for the CPU-only reference stage."""
+    return nullcontext((cfg.device, None)) if stage == "reference" else leased_device(cfg.device)
 
 
 def _batch_checkpoint(runs: list[tuple[PhotoRun, StageSpec, Fingerprint]], stage: str) -> Path:
@@ -460,12 +474,16 @@ def run_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineCon
     only itself. Each manifest's wall time is its batch's."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got {until!r}")
-    runs = [PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites) for photo, key in photos]
+    for _, key in photos:
+        store.cleanup_staging(key)
+    with leased_device(cfg.device) as (device, lease):
+        leased = replace(cfg, device=device)
+        runs = [PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites) for photo, key in photos]
+        for stage in [s for s in STAGES if STAGES.index(s) <= STAGES.index(until)]:
+            live = [r for r in runs if r.outcome.error is None and stage in r.stages]
+            _run_stage_together(live, stage)
     for run in runs:
-        store.cleanup_staging(run.key)
-    for stage in [s for s in STAGES if STAGES.index(s) <= STAGES.index(until)]:
-        live = [r for r in runs if r.outcome.error is None and stage in r.stages]
-        _run_stage_together(live, stage)
+        _record_lease(run.outcome.stages, lease)
     return [r.outcome for r in runs]
 
 
@@ -477,8 +495,12 @@ def run_stage_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: Pipel
     that photo alone. A batch is resumed from its checkpoints only when re-run with the same photos."""
     if stage not in STAGES:
         raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
-    runs = [PhotoRun(Path(photo), key, store, cfg, preset, None, progress, None) for photo, key in photos]
-    _run_stage_together(runs, stage)
+    with _stage_device(cfg, stage) as (device, lease):
+        runs = [PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, None, progress, None)
+                for photo, key in photos]
+        _run_stage_together(runs, stage)
+    for run in runs:
+        _record_lease(run.outcome.stages[-1:], lease)
     return {r.key: r.error if r.error is not None else r.outcome.stages[-1] for r in runs}
 
 
@@ -490,8 +512,10 @@ def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
     Cached when its fingerprint matches, resumed from its newest checkpoint when one exists.
     Raises on failure (``MissingUpstreamError`` when an input stage has no finished output), so
     an orchestrator can retry; finished outputs and checkpoints stay in place."""
-    run = PhotoRun(Path(photo), key, store, cfg, preset, init_mesh, progress, suites)
-    run.run(stage)
+    with _stage_device(cfg, stage) as (device, lease):
+        run = PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, init_mesh, progress, suites)
+        run.run(stage)
+    _record_lease(run.outcome.stages[-1:], lease)
     return run.outcome.stages[-1]
 
 

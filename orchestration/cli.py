@@ -3,6 +3,7 @@
     morpheus3d-dagster add-photos [NAME ...]        register photos of $MORPHEUS_PHOTO_DIR, print keys
     morpheus3d-dagster materialize [NAME ...]       run all six assets per photo, in this process
     morpheus3d-dagster status                       fresh / stale / missing per photo
+    morpheus3d-dagster gpu-pool [--limit N]         set the "gpu" pool's limit to this host's GPU count
 
 Runs are recorded in the instance at ``$DAGSTER_HOME`` (``make dagster`` shows them in the UI).
 Backfills through the daemon: ``dagster job backfill -w workspace.yaml -j morpheus_photos
@@ -21,8 +22,10 @@ from pathlib import Path
 
 import dagster as dg
 
+from ops.gpu_lease import GPUS_ENV, gpu_count
 from ops.qa import read_report
 from ops.uv_bake import ASSET_GLB
+from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB, build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.resources import MorpheusResource
@@ -93,6 +96,22 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     return 1 if failed else 0
 
 
+def gpu_pool(limit: int | None, force: bool) -> int:
+    """Set the ``gpu`` pool's limit to the GPUs runs may lease here (``ops.gpu_lease``; at least 1, so
+    a CPU host still runs its GPU stages on the CPU one at a time). A limit set before is kept
+    unless ``force``."""
+    storage = _instance().event_log_storage
+    found = gpu_count()
+    wanted = limit if limit is not None else max(1, found)
+    if GPU_POOL in storage.get_concurrency_keys() and not force:
+        current = storage.get_concurrency_info(GPU_POOL).slot_count
+        print(f"pool {GPU_POOL!r} keeps its limit {current} ({found} GPU(s) found; --force sets {wanted})")
+        return 0
+    storage.set_concurrency_slots(GPU_POOL, wanted)
+    print(f"pool {GPU_POOL!r} limit {wanted} ({found} GPU(s) found via {GPUS_ENV} / CUDA_VISIBLE_DEVICES / torch)")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="morpheus3d-dagster", description=__doc__.split("\n\n")[0])
     parser.add_argument("--photos", type=Path, help="photo folder (default $MORPHEUS_PHOTO_DIR or examples/photos)")
@@ -105,7 +124,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         p = sub.add_parser(name, help=text)
         if name != "status":
             p.add_argument("names", nargs="*", help="photo file names in the folder (default: all)")
+    pool = sub.add_parser("gpu-pool", help="set the gpu pool's limit to the number of GPUs found")
+    pool.add_argument("--limit", type=int, help="this limit instead of the GPU count")
+    pool.add_argument("--force", action="store_true", help="replace a limit set before")
     args = parser.parse_args(argv)
+    if args.command == "gpu-pool":
+        return gpu_pool(args.limit, args.force)
     env = dict(os.environ)
     for flag, var in ((args.photos, "MORPHEUS_PHOTO_DIR"), (args.store, "MORPHEUS_STORE"),
                       (args.preset, "MORPHEUS_PRESET")):

@@ -53,6 +53,8 @@ def stage_metadata(outcome: StageOutcome, stage_dir: Path) -> dict[str, Any]:
         "created_at": m.created_at,
         "stage_dir": MetadataValue.path(str(stage_dir)),
     }
+    if outcome.lease is not None:
+        meta["gpu_lease"] = outcome.lease
     if m.plan:
         meta["plan"] = MetadataValue.json({k: _plain(v) for k, v in m.plan.items()})
     metrics = {k: _plain(v) for k, v in m.metrics.items() if isinstance(v, (int, float, str, bool)) or v is None}

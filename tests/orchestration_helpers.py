@@ -103,3 +103,9 @@ def inject_fault(monkeypatch: pytest.MonkeyPatch, stage_label: str, at_step: int
 
     monkeypatch.setattr(assets_module, "_logging_progress", wrapped)
     return fault
+
+
+def job_from_env() -> dg.JobDefinition:
+    """The photos job for the settings in the environment (``dg.reconstructable`` needs a module-level
+    function: re-execution from failure rebuilds the job in a new process)."""
+    return build_definitions(settings=OrchestrationSettings.from_env()).resolve_job_def(JOB)
