@@ -80,20 +80,26 @@ def _disk(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
 
 
-def outline_support(region: np.ndarray, edges: np.ndarray, tolerance: int = 2,
-                    ignore: np.ndarray | None = None) -> float:
-    """Share of ``region``'s outline pixels within ``tolerance`` px of a step edge; outline pixels in
-    ``ignore`` do not count (0 when no outline pixel is left)."""
+def near_edges(edges: np.ndarray, tolerance: int = 2) -> np.ndarray:
+    """Pixels within ``tolerance`` px of a step edge."""
+    return cv2.dilate(edges.astype(np.uint8), _disk(tolerance)).astype(bool)
+
+
+def outline_share(region: np.ndarray, near: np.ndarray, ignore: np.ndarray | None = None) -> float:
+    """Share of ``region``'s outline pixels inside ``near``; outline pixels in ``ignore`` do not
+    count (0 when no outline pixel is left)."""
     outline = region & ~cv2.erode(region.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     if ignore is not None:
         outline &= ~ignore
-    if not outline.any():
-        return 0.0
-    near = cv2.dilate(edges.astype(np.uint8), _disk(tolerance)).astype(bool)
-    return float(near[outline].mean())
+    return float(near[outline].mean()) if outline.any() else 0.0
 
 
-def _outlined_pieces(apart: np.ndarray, band: np.ndarray, edges: np.ndarray, radius: int, min_support: float,
+def outline_support(region: np.ndarray, edges: np.ndarray, tolerance: int = 2) -> float:
+    """Share of ``region``'s outline pixels within ``tolerance`` px of a step edge."""
+    return outline_share(region, near_edges(edges, tolerance))
+
+
+def _outlined_pieces(apart: np.ndarray, band: np.ndarray, near: np.ndarray, radius: int, min_support: float,
                      accepted: np.ndarray) -> np.ndarray:
     """``accepted`` grown by the pieces of ``apart`` cut at ``radius`` whose outline lies on edges.
 
@@ -113,11 +119,11 @@ def _outlined_pieces(apart: np.ndarray, band: np.ndarray, edges: np.ndarray, rad
         piece = labels == i
         # The outline itself (the edge band around the piece) belongs to the product.
         regions.append(piece | (cv2.dilate(piece.astype(np.uint8), grow).astype(bool) & band))
-    regions.sort(key=lambda r: -outline_support(r, edges))
+    regions.sort(key=lambda r: -outline_share(r, near))
     accepted = accepted.copy()
     for region in regions:
         beside = cv2.dilate(accepted.astype(np.uint8), _disk(3)).astype(bool)
-        if outline_support(region, edges, ignore=beside) >= min_support:
+        if outline_share(region, near, beside) >= min_support:
             accepted |= region
     return accepted
 
@@ -136,6 +142,7 @@ def edge_cue(lab: np.ndarray, background: np.ndarray, ring: np.ndarray, params: 
     band = cv2.dilate(edges.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     apart = (smooth > threshold) & ~band
     regions = np.zeros(smooth.shape, bool)
+    near = near_edges(edges)
     for radius in p.gap_radii:
-        regions = _outlined_pieces(apart & ~regions, band, edges, radius, p.min_outline_support, regions)
+        regions = _outlined_pieces(apart & ~regions, band, near, radius, p.min_outline_support, regions)
     return EdgeCue(edges, regions, noise, threshold)

@@ -8,6 +8,7 @@ looks like backdrop in shadow. Every part is recorded with the reason it was kep
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -29,6 +30,19 @@ class PartRecord:
     relative_area: float  # of the largest part
     kept: bool
     reason: str
+
+
+def scale_box(box: tuple[int, int, int, int], sx: float, sy: float) -> tuple[int, int, int, int]:
+    """An (x0, y0, x1, y1) box in pixels of an image scaled by (sx, sy)."""
+    return round(box[0] * sx), round(box[1] * sy), round(box[2] * sx), round(box[3] * sy)
+
+
+def scaled_parts(parts: tuple[PartRecord, ...], sx: float, sy: float) -> tuple[PartRecord, ...]:
+    return tuple(dataclasses.replace(r, bbox=scale_box(r.bbox, sx, sy)) for r in parts)
+
+
+def kept_count(parts: tuple[PartRecord, ...]) -> int:
+    return sum(r.kept for r in parts)
 
 
 def _touches_border(stats: np.ndarray, shape: tuple[int, int]) -> bool:

@@ -7,7 +7,6 @@ is the completion marker; ``read_reference`` treats a folder without a valid one
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -19,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from morpheus_core.imaging import bbox, recentre
-from morpheus_core.mask_parts import PartRecord
+from morpheus_core.mask_parts import PartRecord, kept_count, scale_box, scaled_parts
 from ops.errors import PreparationError
 from ops.photo import LoadConfig, load_photo
 from ops.segment import ChainStep, SegmentConfig, Segmenter
@@ -71,7 +70,7 @@ class ReferenceInfo:
 
     @property
     def kept_parts(self) -> int:
-        return sum(p.kept for p in self.parts)
+        return kept_count(self.parts)
 
     @property
     def object_long_side_px(self) -> int:
@@ -167,12 +166,10 @@ def prepare_reference(photo_path: Path | str, out_dir: Path | str, cfg: PrepareC
             source_mode=photo.mode, source_size=photo.source_size, loaded_size=photo.size, notes=photo.notes,
             method=result.method, model_path=None if result.model_path is None else str(result.model_path),
             chain=result.chain,
-            bbox=(round(box[0] * sx), round(box[1] * sy), round(box[2] * sx), round(box[3] * sy)),
+            bbox=scale_box(box, sx, sy),
             area_fraction=float(binary.mean()), warnings=result.warnings, border_ratio=cfg.border_ratio,
             files=files, config=cfg.to_dict(),
-            parts=tuple(dataclasses.replace(p, bbox=(round(p.bbox[0] * sx), round(p.bbox[1] * sy),
-                                                     round(p.bbox[2] * sx), round(p.bbox[3] * sy)))
-                        for p in result.parts),
+            parts=scaled_parts(result.parts, sx, sy),
             confidence=asdict(result.confidence),
         )
         (tmp / REFERENCE_FILE).write_text(info.to_json(), encoding="utf-8")

@@ -7,7 +7,6 @@ alpha is then resized back to the loaded photo.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 from morpheus_core.imaging import fit_within, resize, touched_borders
 from morpheus_core.mask_confidence import ConfidenceParams, MaskConfidence, mask_confidence
 from morpheus_core.mask_ops import ClassicalParams, classical_segment, fill_holes
-from morpheus_core.mask_parts import PartRecord, select_parts
+from morpheus_core.mask_parts import PartRecord, kept_count, scaled_parts, select_parts
 from ops.errors import LowConfidenceError, SegmentationError
 from ops.photo import Photo
 from ops.rembg_local import U2NetSession, find_model, model_candidates
@@ -93,10 +92,6 @@ def _tidy(alpha: np.ndarray) -> tuple[np.ndarray, tuple[PartRecord, ...]]:
     return np.where(keep, alpha, 0.0).astype(np.float32), parts
 
 
-def _scaled(parts: tuple[PartRecord, ...], sx: float, sy: float) -> tuple[PartRecord, ...]:
-    return tuple(dataclasses.replace(r, bbox=(round(r.bbox[0] * sx), round(r.bbox[1] * sy), round(r.bbox[2] * sx),
-                                              round(r.bbox[3] * sy))) for r in parts)
-
 
 class Segmenter:
     """Runs the chain; holds the rembg session so it is created once per process, not per photo."""
@@ -134,11 +129,11 @@ class Segmenter:
             alpha, parts = _tidy(session.predict(small))
             fatal, warnings = mask_problems(alpha >= 0.5, self.cfg)
             if fatal is None:
-                confidence = mask_confidence(alpha >= 0.5, sum(r.kept for r in parts), self.cfg.confidence)
+                confidence = mask_confidence(alpha >= 0.5, kept_count(parts), self.cfg.confidence)
                 self._judge(photo, confidence, warnings, "rembg mask")
                 chain.append(ChainStep("rembg", "used", f"{detail}, confidence {confidence.score:.2f}"))
                 return MaskResult(self._full(alpha, (w, h)), "rembg", tuple(chain), tuple(warnings), session.model_path,
-                                  confidence, _scaled(parts, w / alpha.shape[1], h / alpha.shape[0]))
+                                  confidence, scaled_parts(parts, w / alpha.shape[1], h / alpha.shape[0]))
             chain.append(ChainStep("rembg", "rejected", f"{detail}: {fatal}"))
         else:
             chain.append(ChainStep("rembg", "skipped", detail))
@@ -156,7 +151,7 @@ class Segmenter:
         if result.background_spread > self.cfg.max_background_spread:
             warnings.insert(0, f"background is not near-uniform (border ΔE spread {result.background_spread:.1f} > "
                             f"{self.cfg.max_background_spread:g}): the classical mask may be wrong")
-        kept = sum(r.kept for r in result.parts)
+        kept = kept_count(result.parts)
         confidence = mask_confidence(result.mask, kept, self.cfg.confidence, backdrop_spread=result.background_spread,
                                      edges=result.edges.edges, cue_pixels=result.cue_pixels)
         self._judge(photo, confidence, warnings, "classical mask")
@@ -169,7 +164,7 @@ class Segmenter:
         h, w = photo.rgb.shape[:2]
         sx, sy = w / small.shape[1], h / small.shape[0]
         return MaskResult(self._full(result.mask.astype(np.float32), (w, h)), "classical", tuple(chain),
-                          tuple(warnings), None, confidence, _scaled(result.parts, sx, sy))
+                          tuple(warnings), None, confidence, scaled_parts(result.parts, sx, sy))
 
     def _judge(self, photo: Photo, confidence: MaskConfidence, warnings: list[str], what: str) -> None:
         """Stop a photo whose mask confidence is below ``min_confidence``; warn below ``ok_confidence``."""
