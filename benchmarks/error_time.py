@@ -18,7 +18,7 @@ from assets_store.store import Store
 from benchmarks.scene_eval import EvalConfig, Reconstruction, evaluate, glb_output, mesh_output, nerf_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, runlog_curve, schedule_store, stage_wall_s
 from benchmarks.scenes import Scene
-from ops.uv_bake import ASSET_GLB
+from ops.stages.bake import ASSET_GLB
 
 log = logging.getLogger("morpheus3d.bench")
 

@@ -21,8 +21,8 @@ from morpheus_core.cameras import Cameras
 from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D
 from morpheus_core.priors.proxy import ColourDeviation, LowPass
 from morpheus_core.render.textured import render_textured
-from ops.presets import PipelineConfig
-from ops.prior_suite import PriorSuite, ProxySuite
+from ops.config.presets import PipelineConfig
+from ops.engine.priors import PriorSuite, ProxySuite
 
 OPTIMISING_STAGES = ("nerf_fit", "dmtet", "texture_refine")
 

@@ -10,7 +10,7 @@ built during warm-up) and extrapolates to the paper's 10k + 5k + 5k steps; per-o
 
 Modes: ``before`` = the unoptimised path (eager priors, eager hash grid, one object at a time);
 ``after`` = the defaults now (priors from CUDA graphs, compiled hash grid) with several objects per
-batch (``ops.object_batch``).
+batch (``ops.engine.batch``).
 
     python benchmarks/paper_speed.py --device cuda --mode before --batches 1 --profile --tag h200
     python benchmarks/paper_speed.py --device cuda --mode after --batches 1 4 8 16 --profile --tag h200
@@ -38,14 +38,14 @@ from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from morpheus_core.priors.runtime import PriorRuntime
-from ops.dmtet import start_dmtet
-from ops.nerf_fit import start_nerf
-from ops.object_batch import BatchTask, StageJob
-from ops.optimise import GuardCounters, LoopConfig, LoopResult, run_loop
-from ops.pipeline import run_photo
-from ops.presets import PipelineConfig, preset
-from ops.prior_suite import RealSuite, read_rgba
-from ops.texture_refine import start_texture
+from ops.config.presets import PipelineConfig, preset
+from ops.engine.batch import BatchTask, StageJob
+from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
+from ops.engine.pipeline import run_photo
+from ops.engine.priors import RealSuite, read_rgba
+from ops.stages.dmtet import start_dmtet
+from ops.stages.nerf import start_nerf
+from ops.stages.texture import start_texture
 
 ROOT = Path(__file__).resolve().parent.parent
 PHOTOS = ROOT / "examples" / "photos"

@@ -21,16 +21,16 @@ from assets_store.store import Store
 from benchmarks.scenes import Scene
 from morpheus_core.cameras import Cameras, orbit
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.geometry_metrics import surface_distance, visible_points
-from morpheus_core.metrics import colour_deviation, hf_ratio, psnr, ssim
+from morpheus_core.metrics.image import colour_deviation, hf_ratio, psnr, ssim
+from morpheus_core.metrics.surface import surface_distance, visible_points
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import VolumeRenderConfig, render_volume
 from morpheus_core.texture import TextureField, TextureFieldConfig
-from ops.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
-from ops.nerf_fit import NERF_FILE
-from ops.stage_common import load_module
+from ops.engine.stage_io import load_module
+from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
+from ops.stages.nerf import NERF_FILE
 
 RenderFn = Callable[[Cameras, int], RenderOutput]
 

@@ -13,10 +13,10 @@ from assets_store.runlog import read_runlog
 from assets_store.store import Store
 from benchmarks.oracle import OracleConfig, oracle_suites
 from benchmarks.scenes import FRAME_FILL, Scene
-from ops.config_tree import apply_overrides
-from ops.pipeline import PhotoOutcome, run_photo
-from ops.presets import PipelineConfig, preset, with_steps
-from ops.stage_common import RUNLOG_FILE
+from ops.config.presets import PipelineConfig, preset, with_steps
+from ops.config.tree import apply_overrides
+from ops.engine.pipeline import PhotoOutcome, run_photo
+from ops.engine.stage_io import RUNLOG_FILE
 
 log = logging.getLogger("morpheus3d.bench")
 

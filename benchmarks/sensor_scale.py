@@ -3,7 +3,7 @@
 Sensor: a folder of N photo files (tiny PNGs) and a SQLite Dagster instance, timed for one tick in
 three states: cold start (no partition known yet: the tick adds ``cap`` photos), steady state
 (all but ``cap`` known) and idle (all known). Nightly catch-up: the per-photo status check
-(``ops.pipeline.photo_status``: photo hash from the hash cache + every stage's manifest) timed on
+(``ops.engine.pipeline.photo_status``: photo hash from the hash cache + every stage's manifest) timed on
 a finished store and extrapolated to N photos.
 
     python benchmarks/sensor_scale.py --files 100000 --store outputs/demo --photos examples/photos
@@ -29,8 +29,8 @@ from PIL import Image
 from assets_store.keys import assign_keys
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
-from ops.pipeline import photo_status
-from ops.presets import preset
+from ops.config.presets import preset
+from ops.engine.pipeline import photo_status
 from orchestration.definitions import build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.settings import OrchestrationSettings

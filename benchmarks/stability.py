@@ -20,8 +20,8 @@ from benchmarks.scene_eval import EvalConfig, evaluate, glb_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, schedule_store, stage_guards
 from benchmarks.scenes import FRAME_FILL, Scene
 from morpheus_core.render.textured import load_textured
-from ops.presets import PipelineConfig
-from ops.uv_bake import ASSET_GLB
+from ops.config.presets import PipelineConfig
+from ops.stages.bake import ASSET_GLB
 
 log = logging.getLogger("morpheus3d.bench")
 

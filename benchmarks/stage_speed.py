@@ -24,15 +24,15 @@ import torch
 from assets_store.store import Store
 from morpheus_core.geometry.dmtet import DMTet, DMTetConfig
 from morpheus_core.texture import TextureField
-from ops.dmtet import DMTetTask, choose_grid, init_from_nerf
-from ops.nerf_fit import NERF_FILE, NerfTask
-from ops.optimise import LoopConfig, run_loop
-from ops.pipeline import run_photo
-from ops.plan import read_plan
-from ops.presets import preset
-from ops.prior_suite import build_suite
-from ops.stage_common import ReferenceTarget, save_module
-from ops.texture_refine import TextureTask
+from ops.config.presets import preset
+from ops.engine.loop import LoopConfig, run_loop
+from ops.engine.pipeline import run_photo
+from ops.engine.priors import build_suite
+from ops.engine.stage_io import ReferenceTarget, save_module
+from ops.stages.dmtet import DMTetTask, choose_grid, init_from_nerf
+from ops.stages.nerf import NERF_FILE, NerfTask
+from ops.stages.plan import read_plan
+from ops.stages.texture import TextureTask
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"

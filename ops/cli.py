@@ -86,7 +86,7 @@ def doctor() -> int:
     u2 = rembg_model_file()
     print(f"  {'rembg u2net':<18} {'present' if u2.is_file() else 'missing':<8} {u2}  — segmentation "
           "(set $U2NET_HOME; without it the classical fallback segments)")
-    from morpheus_core.weighted_metrics import weighted_metric_status
+    from morpheus_core.metrics.weighted import weighted_metric_status
 
     print("\nQA metrics with weights (missing → recorded as skipped in qa.json, never downloaded):")
     for status in weighted_metric_status():
@@ -155,7 +155,7 @@ def report_command(args: argparse.Namespace) -> int:
     """Write the catalog report; exit 2 on bad arguments, 1 when the catalog cannot be read."""
     from assets_store.catalog import Catalog, CatalogError
     from assets_store.store import Store
-    from ops.report import build_report, write_report
+    from ops.reporting.report import build_report, write_report
 
     if args.store is None and args.catalog is None:
         print("morpheus3d report: give --store DIR (or --catalog DIR)", file=sys.stderr)
@@ -199,13 +199,13 @@ def run_command(args: argparse.Namespace) -> int:
 
     from assets_store.keys import assign_keys
     from assets_store.store import Store
-    from ops.catalog_rows import record_outcomes
-    from ops.config_tree import ConfigError, flat_keys
-    from ops.pipeline import run_batch, run_photo
-    from ops.prepare_batch import list_photos
-    from ops.presets import preset
-    from ops.progress import ConsoleProgress
-    from ops.run_table import format_run_table
+    from ops.config.presets import preset
+    from ops.config.tree import ConfigError, flat_keys
+    from ops.engine.pipeline import run_batch, run_photo
+    from ops.intake.prepare_batch import list_photos
+    from ops.reporting.catalog_rows import record_outcomes
+    from ops.reporting.progress import ConsoleProgress
+    from ops.reporting.run_table import format_run_table
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     if args.batch < 1:
@@ -257,11 +257,11 @@ def run_command(args: argparse.Namespace) -> int:
 
 def prepare(args: argparse.Namespace) -> int:
     """Prepare one photo or a folder; print the outcome table; exit 1 only for failures under --strict."""
-    from ops.photo import LoadConfig
-    from ops.plan import PlanConfig
-    from ops.prepare_batch import format_table, list_photos, prepare_many, print_progress
-    from ops.reference import PrepareConfig
-    from ops.segment import SegmentConfig
+    from ops.intake.photo import LoadConfig
+    from ops.intake.prepare_batch import format_table, list_photos, prepare_many, print_progress
+    from ops.intake.segment import SegmentConfig
+    from ops.stages.plan import PlanConfig
+    from ops.stages.reference import PrepareConfig
 
     try:
         cfg = PrepareConfig(
@@ -284,8 +284,8 @@ def prepare(args: argparse.Namespace) -> int:
         print(f"preparing {len(photos)} photos from {args.photo} into {out}/<photo>/", file=sys.stderr)
         outcomes = prepare_many(photos, out, cfg, plan_cfg, args.force, print_progress)
     elif args.photo.exists():
-        from ops.prepare_batch import prepare_one
-        from ops.segment import Segmenter
+        from ops.intake.prepare_batch import prepare_one
+        from ops.intake.segment import Segmenter
 
         outcomes = [prepare_one(args.photo, args.out, cfg, plan_cfg, Segmenter(cfg.segment), args.force)]
     else:

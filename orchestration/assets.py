@@ -1,11 +1,11 @@
-"""The photo source asset and the six per-photo stage assets: thin wrappers over ``ops.pipeline``.
+"""The photo source asset and the six per-photo stage assets: thin wrappers over ``ops.engine.pipeline``.
 
-Each stage asset runs ``ops.pipeline.run_stage`` for every photo partition of its step, then
-reports the store's manifest as metadata and the stage's QA checks (``ops.qa.CHECKS``) as asset
+Each stage asset runs ``ops.engine.pipeline.run_stage`` for every photo partition of its step, then
+reports the store's manifest as metadata and the stage's QA checks (``ops.stages.qa.CHECKS``) as asset
 check results. A step covering several photos (a backfill batch) keeps going past a failing
 photo, records what finished, then fails naming the photos that did not, so a retry redoes only
 those (finished ones are cached; interrupted ones resume from their checkpoints). In such a step
-the GPU stages optimise their photos together (``ops.pipeline.run_stage_batch``: one prior
+the GPU stages optimise their photos together (``ops.engine.pipeline.run_stage_batch``: one prior
 forward per step for all of them) unless ``MORPHEUS_BATCH_TOGETHER=0``.
 """
 
@@ -21,11 +21,11 @@ from dagster import AssetExecutionContext
 from assets_store.keys import UnsafeKeyError
 from assets_store.photo_hashes import PhotoHashes
 from morpheus_core.proxy_shape import EmptySilhouetteError
-from ops.config_tree import ConfigError
-from ops.errors import PreparationError
-from ops.optimise import ProgressEvent
-from ops.pipeline import CODE_VERSIONS, MissingUpstreamError, StageOutcome, output_digest
-from ops.qa import CHECKS, ERROR, QACheck, read_report, stage_checks
+from ops.config.tree import ConfigError
+from ops.engine.loop import ProgressEvent
+from ops.engine.pipeline import CODE_VERSIONS, MissingUpstreamError, StageOutcome, output_digest
+from ops.intake.errors import PreparationError
+from ops.stages.qa import CHECKS, ERROR, QACheck, read_report, stage_checks
 from orchestration.metadata import check_metadata, stage_metadata
 from orchestration.partitions import PHOTOS, photos
 from orchestration.resources import MorpheusResource, UnknownPhotoError

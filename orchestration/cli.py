@@ -22,9 +22,9 @@ from pathlib import Path
 
 import dagster as dg
 
-from ops.gpu_lease import GPUS_ENV, gpu_count
-from ops.qa import read_report
-from ops.uv_bake import ASSET_GLB
+from ops.engine.gpu_lease import GPUS_ENV, gpu_count
+from ops.stages.bake import ASSET_GLB
+from ops.stages.qa import read_report
 from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB, build_definitions
 from orchestration.partitions import PHOTOS
@@ -97,7 +97,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
 
 
 def gpu_pool(limit: int | None, force: bool) -> int:
-    """Set the ``gpu`` pool's limit to the GPUs runs may lease here (``ops.gpu_lease``; at least 1, so
+    """Set the ``gpu`` pool's limit to the GPUs runs may lease here (``ops.engine.gpu_lease``; at least 1, so
     a CPU host still runs its GPU stages on the CPU one at a time). A limit set before is kept
     unless ``force``."""
     storage = _instance().event_log_storage

@@ -11,8 +11,8 @@ from typing import Any
 from dagster import MetadataValue
 
 from assets_store.manifest import Manifest
-from ops.pipeline import StageOutcome
-from ops.qa import QACheck
+from ops.engine.pipeline import StageOutcome
+from ops.stages.qa import QACheck
 
 # The image people look at per stage (the reference's mask overlay, renders, the GLB turntable).
 PREVIEWS = {"reference": "preview.png", "nerf_fit": "preview.png", "dmtet": "preview.png",

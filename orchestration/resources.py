@@ -11,11 +11,11 @@ from pydantic import Field
 from assets_store.catalog import Catalog
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
-from ops import photo_folder
-from ops.catalog_rows import photo_row
-from ops.optimise import ProgressFn
-from ops.pipeline import StageOutcome, photo_status, run_stage, run_stage_batch
-from ops.presets import PipelineConfig, preset
+from ops.config.presets import PipelineConfig, preset
+from ops.engine.loop import ProgressFn
+from ops.engine.pipeline import StageOutcome, photo_status, run_stage, run_stage_batch
+from ops.intake import photo_folder
+from ops.reporting.catalog_rows import photo_row
 
 
 class UnknownPhotoError(LookupError):
@@ -52,7 +52,7 @@ class MorpheusResource(ConfigurableResource):
 
     def run_stage_batch(self, keys: list[str], stage: str,
                         progress: ProgressFn | None = None) -> dict[str, StageOutcome | Exception]:
-        """``stage`` for several photos together (``ops.pipeline.run_stage_batch``); per key its outcome
+        """``stage`` for several photos together (``ops.engine.pipeline.run_stage_batch``); per key its outcome
         or the exception that stopped it (``UnknownPhotoError`` for a photo gone from the folder)."""
         names = self.photos()
         out: dict[str, StageOutcome | Exception] = {}

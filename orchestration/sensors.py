@@ -15,7 +15,7 @@ from pathlib import Path
 import dagster as dg
 from dagster._core.definitions.unresolved_asset_job_definition import UnresolvedAssetJobDefinition
 
-from ops.photo_folder import upload_state
+from ops.intake.photo_folder import upload_state
 from orchestration.partitions import PHOTOS, photos
 from orchestration.resources import MorpheusResource
 from orchestration.settings import OrchestrationSettings

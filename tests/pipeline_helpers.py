@@ -7,7 +7,7 @@ from pathlib import Path
 
 from assets_store.manifest import Manifest
 from assets_store.store import Store
-from ops.presets import PipelineConfig, preset, with_steps
+from ops.config.presets import PipelineConfig, preset, with_steps
 
 ROOT = Path(__file__).resolve().parent.parent
 PHOTOS = ROOT / "examples" / "photos"

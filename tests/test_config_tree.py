@@ -6,8 +6,8 @@ import pytest
 
 from morpheus_core.frequency import BandMask
 from morpheus_core.guidance_presets import paper_ablations
-from ops.config_tree import ConfigError, apply_overrides, flat_keys, from_dict, to_dict
-from ops.presets import PRESETS, PipelineConfig, preset
+from ops.config.presets import PRESETS, PipelineConfig, preset
+from ops.config.tree import ConfigError, apply_overrides, flat_keys, from_dict, to_dict
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))

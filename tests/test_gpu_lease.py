@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from assets_store.store import Store
-from ops.gpu_lease import GpuLeaseError, LeaseSettings, gpu_lease, leased_device, visible_gpus
+from ops.engine.gpu_lease import GpuLeaseError, LeaseSettings, gpu_lease, leased_device, visible_gpus
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,7 +38,7 @@ def _worker(folder: Path, gpus: str, body: str, **env: str) -> subprocess.Popen[
         import json, logging, sys, time
         from pathlib import Path
         logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
-        from ops.gpu_lease import LeaseSettings, gpu_lease
+        from ops.engine.gpu_lease import LeaseSettings, gpu_lease
         settings = LeaseSettings(folder=Path({str(folder)!r}), poll_s=0.02, report_every_s=0.2)
     """) + textwrap.dedent(body)
     return subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, text=True, stdout=subprocess.PIPE,

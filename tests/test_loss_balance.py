@@ -12,8 +12,8 @@ import torch
 
 from morpheus_core.frequency import BandMask, dct_matrix
 from morpheus_core.loss_balance import LAMBDA_SCALE, mask_bce, reference_loss, scaled_total
-from ops.nerf_fit import normal_smoothness
-from ops.presets import preset
+from ops.config.presets import preset
+from ops.stages.nerf import normal_smoothness
 
 
 def _gen() -> torch.Generator:
@@ -103,9 +103,9 @@ def test_the_nerf_anneal_follows_the_steps_unless_set() -> None:
 
 
 def test_every_render_setting_reaches_the_nerf_renderer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import ops.nerf_fit as nerf_fit
+    import ops.stages.nerf as nerf_fit
     from assets_store.store import Store
-    from ops.pipeline import run_photo
+    from ops.engine.pipeline import run_photo
     from tests.pipeline_helpers import PHOTOS, tiny_config
 
     sets = ["nerf.render.n_samples=13", "nerf.render.max_density=777.0", "nerf.render.chunk_points=4099",

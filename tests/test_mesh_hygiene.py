@@ -23,9 +23,9 @@ from morpheus_core.geometry.mesh_hygiene import (
 )
 from morpheus_core.render.textured import load_textured
 from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig
-from ops.dmtet import MESH_FILE, TEXTURE_FILE, save_mesh
-from ops.stage_common import save_module
-from ops.uv_bake import ASSET_GLB, UVBakeConfig, bake_asset
+from ops.engine.stage_io import save_module
+from ops.stages.bake import ASSET_GLB, UVBakeConfig, bake_asset
+from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, save_mesh
 
 FRESH = secrets.randbits(31)
 SEEDS = [0, 1, FRESH]

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 import trimesh
 from skimage.metrics import structural_similarity
 
-from morpheus_core.metrics import (
+from morpheus_core.metrics.image import (
     EmptyRegionError,
     MetricInputError,
     colour_deviation,

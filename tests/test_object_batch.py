@@ -1,4 +1,4 @@
-"""Several photos optimised together (``ops.object_batch``): per-object guidance, outputs equal to
+"""Several photos optimised together (``ops.engine.batch``): per-object guidance, outputs equal to
 one-by-one runs, resume of a killed batch, a failing photo isolated, the CLI's ``--batch``."""
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from assets_store.store import Store
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.frequency import BandMask
 from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
-from ops import dmtet as dmtet_stage
-from ops import object_batch
 from ops.cli import main
-from ops.optimise import ProgressEvent
-from ops.pipeline import run_batch, run_photo
+from ops.engine import batch as object_batch
+from ops.engine.loop import ProgressEvent
+from ops.engine.pipeline import run_batch, run_photo
+from ops.stages import dmtet as dmtet_stage
 from orchestration.settings import OrchestrationSettings
 from tests.helpers import PooledPrior, RandomPrior, TinyFinetunedPrior
 from tests.pipeline_helpers import PHOTOS, cli_overrides, manifest, output_hashes, tiny_config

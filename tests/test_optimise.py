@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from assets_store.checkpoints import Checkpoints
-from ops.optimise import BadStep, LoopConfig, StepOutput, run_loop
+from ops.engine.loop import BadStep, LoopConfig, StepOutput, run_loop
 
 
 class _InfGradient(torch.autograd.Function):

@@ -22,7 +22,7 @@ from PIL import Image
 from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
-from ops.qa import CHECKS, read_report
+from ops.stages.qa import CHECKS, read_report
 from orchestration.assets import ASSET_OF_STAGE, GPU_POOL, STAGE_ASSET_NAMES
 from orchestration.definitions import JOB
 from orchestration.partitions import PHOTOS

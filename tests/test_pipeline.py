@@ -16,9 +16,9 @@ from safetensors.torch import load_file
 from assets_store.store import CATALOG_DIR, Store
 from morpheus_core.priors.proxy import ProxyPrior
 from ops.cli import main
-from ops.pipeline import STAGES, PhotoOutcome, run_photo
-from ops.presets import PipelineConfig, preset
-from ops.prior_suite import PriorsConfig, ProxySuite, build_suite
+from ops.config.presets import PipelineConfig, preset
+from ops.engine.pipeline import STAGES, PhotoOutcome, run_photo
+from ops.engine.priors import PriorsConfig, ProxySuite, build_suite
 from tests.pipeline_helpers import DEVICE, PHOTOS, manifest, output_hashes, tiny_config
 
 KEY = "mug.jpg"
@@ -199,7 +199,7 @@ def test_init_mesh_errors_name_the_file(tmp_path: Path) -> None:
 
 def test_normal_smoothness_is_zero_for_flat_normals_and_enters_the_nerf_loss(tmp_path: Path) -> None:
     from assets_store.runlog import read_runlog
-    from ops.nerf_fit import normal_smoothness
+    from ops.stages.nerf import normal_smoothness
 
     g = torch.Generator().manual_seed(5)
     flat = torch.nn.functional.normalize(torch.randn(3, generator=g), dim=0).expand(2, 8, 8, 3)

@@ -17,10 +17,10 @@ from morpheus_core.mask_edges import edge_cue
 from morpheus_core.mask_ops import border_ring, classical_segment, fit_background, iou, to_lab
 from morpheus_core.proxy_shape import InflationConfig, from_reference_folder
 from ops.cli import main
-from ops.errors import LowConfidenceError
-from ops.plan import plan_reference
-from ops.reference import prepare_reference, read_reference
-from ops.segment import SegmentConfig, Segmenter
+from ops.intake.errors import LowConfidenceError
+from ops.intake.segment import SegmentConfig, Segmenter
+from ops.stages.plan import plan_reference
+from ops.stages.reference import prepare_reference, read_reference
 from tests.photo_factory import SHAPES, multipart_photo, white_on_white_photo
 
 SKIMAGE = pytest.importorskip("skimage.data")
@@ -148,7 +148,7 @@ def test_cli_stops_a_low_confidence_photo_with_the_fix(tmp_path: Path, capsys: p
 
 def test_a_low_confidence_photo_stops_before_the_gpu_stages(tmp_path: Path) -> None:
     from assets_store.store import Store
-    from ops.pipeline import run_photo
+    from ops.engine.pipeline import run_photo
     from tests.pipeline_helpers import tiny_config
 
     store = Store(tmp_path / "store")

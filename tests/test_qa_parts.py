@@ -26,9 +26,9 @@ from morpheus_core.part_silhouettes import compare_part_silhouettes, count_parts
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
 from morpheus_core.texture import BakeConfig, bake_uv, export_glb
-from ops.nerf_fit import NERF_FILE
-from ops.qa import QAConfig, read_report, run_qa
-from ops.stage_common import save_module
+from ops.engine.stage_io import save_module
+from ops.stages.nerf import NERF_FILE
+from ops.stages.qa import QAConfig, read_report, run_qa
 
 FRESH = secrets.randbits(31)
 SEEDS = [0, FRESH]

@@ -27,7 +27,7 @@ from assets_store.catalog import Catalog
 from assets_store.runlog import write_runlog
 from assets_store.store import Store
 from ops.cli import main
-from ops.report import SECTIONS, STAGE_ORDER, worst_order
+from ops.reporting.report import SECTIONS, STAGE_ORDER, worst_order
 from tests.browser import chromium, needs_browser
 from tests.catalog_rows import LOGGED_STAGES, METRICS, synthetic_row
 
@@ -99,7 +99,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict], 
 
 
 def test_stage_order_is_the_pipelines() -> None:
-    from ops.pipeline import STAGES
+    from ops.engine.pipeline import STAGES
 
     assert STAGE_ORDER == STAGES
 
@@ -229,7 +229,7 @@ def test_qa_on_a_bundled_photo_then_the_report_in_chromium(tmp_path: Path, brows
 
     from selenium.webdriver.common.by import By
 
-    from ops.qa import QA_FILE, QA_TURNTABLE_GIF
+    from ops.stages.qa import QA_FILE, QA_TURNTABLE_GIF
     from tests.pipeline_helpers import PHOTOS, cli_overrides, tiny_config
 
     store = tmp_path / "store"

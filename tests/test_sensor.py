@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from assets_store.photo_hashes import PhotoHashes
-from ops import photo_folder
+from ops.intake import photo_folder
 from orchestration.definitions import build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.settings import OrchestrationSettings

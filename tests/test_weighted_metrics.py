@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from morpheus_core.lpips import LPIPS, LPIPS_FILE, LPIPSWeightsError, convert_lpips_checkpoint, main
-from morpheus_core.weighted_metrics import (
+from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE, LPIPSWeightsError, convert_lpips_checkpoint, main
+from morpheus_core.metrics.weighted import (
     MANIQA_FILE,
     METRIC_NAMES,
     SKIP_MISSING,
@@ -261,7 +261,7 @@ def test_invalid_inputs_raise(scorer: WeightedMetrics) -> None:
 
 def _upstream_lpips_alex(state: dict[str, torch.Tensor], in0: torch.Tensor, in1: torch.Tensor) -> torch.Tensor:
     """LPIPS v0.1 (alex) transcribed step by step from richzhang/PerceptualSimilarity with plain
-    functional ops, independent of ``morpheus_core.lpips``'s module structure: inputs in [-1, 1],
+    functional ops, independent of ``morpheus_core.metrics.lpips``'s module structure: inputs in [-1, 1],
     ScalingLayer, slices features[0:2], [2:5], [5:8], [8:10], [10:12], normalize_tensor, heads."""
     F = torch.nn.functional
     shift = torch.tensor([-.030, -.088, -.188])[None, :, None, None]

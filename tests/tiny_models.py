@@ -8,10 +8,10 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
-from morpheus_core.lpips import LPIPS, LPIPS_FILE
+from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE
+from morpheus_core.metrics.weighted import MANIQA_FILE
 from morpheus_core.priors.architectures import Image2DParts, Zero123Parts, image2d_parts, zero123_parts
 from morpheus_core.priors.zero123 import PROJECTION_LAYOUTS
-from morpheus_core.weighted_metrics import MANIQA_FILE
 
 
 def write_zero123(folder: Path, parts: Zero123Parts, layout: str = "cc_projection") -> Path:
@@ -73,7 +73,7 @@ def write_all(root: Path, seed: int = 0) -> Path:
     return root
 
 
-# -- weighted QA metrics (morpheus_core/weighted_metrics.py) ---------------------------------------
+# -- weighted QA metrics (morpheus_core/metrics/weighted.py) ---------------------------------------
 
 
 def tiny_clip_vocab() -> dict[str, int]:

@@ -3,7 +3,7 @@
 Metrics, their default folders under the models root and the files each folder must hold:
 
 - ``lpips`` (lower = closer): LPIPS v0.1 between the reference photo and the reference-view
-  render; ``lpips/lpips.safetensors`` (layout and converter: ``morpheus_core/lpips.py``).
+  render; ``lpips/lpips.safetensors`` (layout and converter: ``morpheus_core/metrics/lpips.py``).
 - ``clip_similarity`` (higher = closer): cosine similarity of CLIP image embeddings, each novel
   view vs the photo, mean over views; ``clip/`` with ``config.json``, ``model.safetensors`` or
   ``pytorch_model.bin``, ``preprocessor_config.json`` (a transformers ``CLIPModel`` snapshot).
@@ -94,7 +94,7 @@ from torch import Tensor
 
 from morpheus_core.devices import pick_device
 from morpheus_core.imaging import batch_to_uint8_hwc
-from morpheus_core.lpips import LPIPS, LPIPS_FILE
+from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE
 from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root, spec_named
 
 log = logging.getLogger(__name__)
@@ -122,7 +122,7 @@ METRIC_SPECS: tuple[ModelSpec, ...] = (
         ((LPIPS_FILE,),),
         "fetch torchvision's alexnet-owt-7be5be79.pth (download.pytorch.org/models/) and LPIPS' "
         "lpips/weights/v0.1/alex.pth (github.com/richzhang/PerceptualSimilarity) on a machine with internet "
-        "access, then `python -m morpheus_core.lpips --trunk alexnet-owt-7be5be79.pth --lin alex.pth "
+        "access, then `python -m morpheus_core.metrics.lpips --trunk alexnet-owt-7be5be79.pth --lin alex.pth "
         f"--out <folder>/{LPIPS_FILE}`",
     ),
     ModelSpec("clip_similarity", "clip", "CLIP image-embedding similarity of the novel views to the reference",
@@ -133,7 +133,7 @@ METRIC_SPECS: tuple[ModelSpec, ...] = (
         "maniqa", "maniqa", "MANIQA no-reference quality of the views (ONNX on onnxruntime CPU)",
         ((MANIQA_FILE,),),
         f"export the MANIQA model to <folder>/{MANIQA_FILE} with torch.onnx.export as described in "
-        "morpheus_core/weighted_metrics.py (input N×3×224×224 ImageNet-normalised, output N×1)",
+        "morpheus_core/metrics/weighted.py (input N×3×224×224 ImageNet-normalised, output N×1)",
     ),
 )
 

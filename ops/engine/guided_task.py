@@ -4,7 +4,7 @@ A subclass names its modules and optimiser groups and implements ``render_step``
 renders and its own losses) and ``render_eval``; the guidance call, the checkpointed state (every
 module's state dict, the Adam moments, the priors' LoRA state), the VSD counterpart updates and
 the reference-view PSNR for the run log are the same for all of them. Splitting the renders from
-the guidance is what lets ``ops.object_batch`` guide many objects with one prior forward.
+the guidance is what lets ``ops.engine.batch`` guide many objects with one prior forward.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
 from morpheus_core.loss_balance import scaled_total
 from morpheus_core.render.output import RenderOutput
-from ops.guidance_settings import GuidanceSettings
-from ops.optimise import StepOutput
-from ops.prior_suite import PriorSuite
-from ops.stage_common import ReferenceTarget, reference_psnr
+from ops.engine.guidance_settings import GuidanceSettings
+from ops.engine.loop import StepOutput
+from ops.engine.priors import PriorSuite
+from ops.engine.stage_io import ReferenceTarget, reference_psnr
 
 
 def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:

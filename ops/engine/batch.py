@@ -28,9 +28,9 @@ from torch import Tensor
 
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
 from morpheus_core.priors.proxy import CurrentRenderCounterpart, ProxyPrior
-from ops.guided_task import GuidedTask, RenderedStep, step_output
-from ops.optimise import BadStep, LoopConfig, LoopResult, ProgressFn, StepOutput, run_loop
-from ops.stage_common import StageResult
+from ops.engine.guided_task import GuidedTask, RenderedStep, step_output
+from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn, StepOutput, run_loop
+from ops.engine.stage_io import StageResult
 
 
 def _concat(values: list[Any]) -> Any:

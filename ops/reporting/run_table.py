@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from assets_store.store import Store
-from ops.pipeline import PhotoOutcome, uses_weight_free
-from ops.uv_bake import ASSET_GLB
+from ops.engine.pipeline import PhotoOutcome, uses_weight_free
+from ops.stages.bake import ASSET_GLB
 
 
 def format_run_table(outcomes: list[PhotoOutcome], store: Store) -> str:

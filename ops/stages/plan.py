@@ -35,7 +35,7 @@ from PIL import Image
 from assets_store.atomic import atomic_write_text
 from morpheus_core.geometry.dmtet import estimate_faces, suggest_resolution
 from morpheus_core.imaging import object_high_frequency_ratio, resize
-from ops.reference import ReferenceInfo, read_reference
+from ops.stages.reference import ReferenceInfo, read_reference
 
 PLAN_FILE = "plan.json"
 SCHEMA = 1

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from assets_store.keys import assign_keys
-from ops.photo import EXTENSIONS
+from ops.intake.photo import EXTENSIONS
 
 # Names that upload tools give files while they are still being written.
 PARTIAL_SUFFIXES = (".part", ".partial", ".crdownload", ".download", ".tmp", ".temp", ".filepart", ".uploading")

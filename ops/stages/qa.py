@@ -4,10 +4,10 @@ Each check has a severity: ``error`` checks decide pass/fail, ``warn`` checks fl
 look without failing it. Thresholds come from ``QAConfig`` (``--set qa.min_ref_psnr=18``). The
 checks of the producing stages are pure functions of their manifest metrics, so the Dagster
 assets and the QA report agree by construction; the ``qa`` stage re-loads the written GLB and
-measures it on its own (``morpheus_core.metrics``: reference-view PSNR / SSIM inside and outside
+measures it on its own (``morpheus_core.metrics.image``: reference-view PSNR / SSIM inside and outside
 the mask, silhouette IoU, high-frequency ratio and colour deviation over a turntable, mesh health,
-its parts against the photo's mask and the NeRF's silhouettes (``ops.qa_parts``);
-``morpheus_core.weighted_metrics``: LPIPS, CLIP similarity, CLIP-IQA, MANIQA when their weights
+its parts against the photo's mask and the NeRF's silhouettes (``ops.stages.qa_parts``);
+``morpheus_core.metrics.weighted``: LPIPS, CLIP similarity, CLIP-IQA, MANIQA when their weights
 are installed, else recorded as skipped) rather than trusting the numbers the bake reported.
 
 Output of the ``qa`` stage: ``qa.json`` (verdict, reasons, every check and metric, the weighted
@@ -31,12 +31,20 @@ from PIL import Image
 
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
 from morpheus_core.cameras import turntable
-from morpheus_core.metrics import colour_deviation, hf_ratio, mask_iou, masked_psnr, masked_ssim, mesh_health, ssim
+from morpheus_core.metrics.image import (
+    colour_deviation,
+    hf_ratio,
+    mask_iou,
+    masked_psnr,
+    masked_ssim,
+    mesh_health,
+    ssim,
+)
+from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weighted_metrics
 from morpheus_core.part_silhouettes import count_parts
 from morpheus_core.render.textured import load_textured, render_textured
-from morpheus_core.weighted_metrics import WeightedMetricsConfig, compute_weighted_metrics
-from ops.qa_parts import compare_with_nerf
-from ops.stage_common import ReferenceTarget, StageResult, pick_device, reference_psnr, save_strip, to_uint8
+from ops.engine.stage_io import ReferenceTarget, StageResult, pick_device, reference_psnr, save_strip, to_uint8
+from ops.stages.qa_parts import compare_with_nerf
 
 QA_FILE = "qa.json"
 QA_TURNTABLE_FILE = "turntable.png"

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.metrics import MetricInputError
+from morpheus_core.metrics.image import MetricInputError
 from morpheus_core.render.output import RenderOutput
 
 # Pairwise distances are taken in blocks of this many query points (memory, not speed).

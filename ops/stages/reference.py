@@ -19,9 +19,9 @@ from PIL import Image
 
 from morpheus_core.imaging import bbox, recentre
 from morpheus_core.mask_parts import PartRecord, kept_count, scale_box, scaled_parts
-from ops.errors import PreparationError
-from ops.photo import LoadConfig, load_photo
-from ops.segment import ChainStep, SegmentConfig, Segmenter
+from ops.intake.errors import PreparationError
+from ops.intake.photo import LoadConfig, load_photo
+from ops.intake.segment import ChainStep, SegmentConfig, Segmenter
 
 SCHEMA = 2  # 2: the mask's parts (kept and dropped, with why) and its confidence
 REFERENCE_FILE = "reference.json"

@@ -20,14 +20,12 @@ import torch
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.texture import TextureField, TextureFieldConfig
-from ops.dmtet import MESH_FILE as DMTET_MESH
-from ops.dmtet import TEXTURE_FILE, load_mesh
-from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask, RenderedStep
-from ops.object_batch import StageJob
-from ops.optimise import LoopConfig, LoopResult, ProgressFn
-from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
-from ops.stage_common import (
+from ops.engine.batch import StageJob
+from ops.engine.guidance_settings import GuidanceSettings
+from ops.engine.guided_task import GuidedTask, RenderedStep
+from ops.engine.loop import LoopConfig, LoopResult, ProgressFn
+from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.stage_io import (
     PREVIEW_FILE,
     ReferenceTarget,
     StageResult,
@@ -40,6 +38,8 @@ from ops.stage_common import (
     save_stage_preview,
     write_log,
 )
+from ops.stages.dmtet import MESH_FILE as DMTET_MESH
+from ops.stages.dmtet import TEXTURE_FILE, load_mesh
 
 CODE_VERSION = "texture_refine-2"  # 2: the official loss balance
 

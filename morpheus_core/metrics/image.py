@@ -3,7 +3,7 @@
 Image conventions: images are float tensors in [0, 1], (C, H, W) or (N, C, H, W) (C = 3 wherever colour is
 involved); masks are (H, W), (1, H, W), (1, 1, H, W) or (N, 1, H, W) in [0, 1]. A mask with one slice
 applies to every image of a batch. Soft masks weight pixels (PSNR, SSIM, colour histograms, hf_ratio);
-silhouette IoU thresholds them (> 0.5, like ``ops.qa.mask_iou``).
+silhouette IoU thresholds them (> 0.5, like ``ops.stages.qa.mask_iou``).
 
 Non-finite values never leave this module silently:
 
@@ -258,7 +258,7 @@ def masked_ssim(x: Tensor, y: Tensor, mask: Tensor, window: int = 11, sigma: flo
 def mask_iou(a: Tensor, b: Tensor) -> float:
     """Intersection over union of two silhouettes (or batches of them) thresholded at > 0.5.
 
-    1.0 when both are empty: there is nothing to disagree on (the same rule as ``ops.qa.mask_iou``).
+    1.0 when both are empty: there is nothing to disagree on (the same rule as ``ops.stages.qa.mask_iou``).
     """
     ma, mb = _mask_2d(a, "a") > 0.5, _mask_2d(b, "b") > 0.5
     if ma.shape[-2:] != mb.shape[-2:] or (ma.shape[0] != mb.shape[0] and 1 not in (ma.shape[0], mb.shape[0])):

@@ -36,14 +36,12 @@ from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
-from ops.colour_fit import fit_colour_field, jittered_surface_points
-from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask, RenderedStep
-from ops.nerf_fit import load_nerf
-from ops.object_batch import StageJob
-from ops.optimise import BadStep, LoopConfig, LoopResult, ProgressFn
-from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
-from ops.stage_common import (
+from ops.engine.batch import StageJob
+from ops.engine.guidance_settings import GuidanceSettings
+from ops.engine.guided_task import GuidedTask, RenderedStep
+from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn
+from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.stage_io import (
     ReferenceTarget,
     StageResult,
     loop_metrics,
@@ -54,6 +52,8 @@ from ops.stage_common import (
     save_stage_preview,
     write_log,
 )
+from ops.stages.colour_fit import fit_colour_field, jittered_surface_points
+from ops.stages.nerf import load_nerf
 
 MESH_FILE = "mesh.safetensors"
 TEXTURE_FILE = "texture_field.safetensors"

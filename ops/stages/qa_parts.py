@@ -17,7 +17,7 @@ from morpheus_core.geometry.nerf import NerfField
 from morpheus_core.part_silhouettes import PartComparison, compare_part_silhouettes
 from morpheus_core.render.textured import TexturedMesh, render_textured
 from morpheus_core.render.volume import OccupancyGrid, render_silhouette
-from ops.nerf_fit import NERF_FILE, load_nerf
+from ops.stages.nerf import NERF_FILE, load_nerf
 
 SILHOUETTE_LEVEL = 0.5
 

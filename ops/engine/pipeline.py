@@ -26,17 +26,20 @@ from assets_store.hashing import bytes_sha256, config_hash, file_sha256
 from assets_store.manifest import Fingerprint, Manifest
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
-from ops import dmtet as dmtet_stage
-from ops import nerf_fit, qa, texture_refine, uv_bake
-from ops.config_tree import to_dict
-from ops.gpu_lease import GpuLease, leased_device
-from ops.object_batch import StageJob, run_jobs
-from ops.optimise import ProgressEvent, ProgressFn
-from ops.plan import StagePlan, plan_reference, read_plan
-from ops.presets import PipelineConfig
-from ops.prior_suite import WEIGHT_FREE, PriorSuite
-from ops.reference import prepare_reference
-from ops.stage_common import StageResult, save_mask_overlay
+from ops.config.presets import PipelineConfig
+from ops.config.tree import to_dict
+from ops.engine.batch import StageJob, run_jobs
+from ops.engine.gpu_lease import GpuLease, leased_device
+from ops.engine.loop import ProgressEvent, ProgressFn
+from ops.engine.priors import WEIGHT_FREE, PriorSuite
+from ops.engine.stage_io import StageResult, save_mask_overlay
+from ops.stages import bake as uv_bake
+from ops.stages import dmtet as dmtet_stage
+from ops.stages import nerf as nerf_fit
+from ops.stages import qa
+from ops.stages import texture as texture_refine
+from ops.stages.plan import StagePlan, plan_reference, read_plan
+from ops.stages.reference import prepare_reference
 
 log = logging.getLogger("morpheus3d")
 
@@ -54,7 +57,7 @@ class StageOutcome:
     wall_s: float = 0.0
     manifest: Manifest | None = None
     error: str | None = None
-    lease: str | None = None  # the GPU lease it ran under (``ops.gpu_lease``), None on the CPU
+    lease: str | None = None  # the GPU lease it ran under (``ops.engine.gpu_lease``), None on the CPU
 
 
 @dataclass
@@ -406,7 +409,7 @@ def _batch_checkpoint(runs: list[tuple[PhotoRun, StageSpec, Fingerprint]], stage
 
 def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
     """``stage`` for every run that has not failed: cached ones are reused, the optimising ones run
-    as one batch (``ops.object_batch``), the rest one by one. Failures are recorded per photo."""
+    as one batch (``ops.engine.batch``), the rest one by one. Failures are recorded per photo."""
     pending: list[tuple[PhotoRun, StageSpec, Fingerprint]] = []
     for run in runs:
         try:

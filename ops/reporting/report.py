@@ -34,7 +34,7 @@ from matplotlib.figure import Figure
 from assets_store.atomic import atomic_write_text
 from assets_store.catalog import Catalog, CatalogRead, latest_rows
 
-# The pipeline's stage order (ops.pipeline.STAGES, checked by the tests): repeated here because importing the
+# The pipeline's stage order (ops.engine.pipeline.STAGES, checked by the tests): repeated here because importing the
 # pipeline pulls in torch, which a report has no use for. Stages the catalog has beyond these follow, by name.
 STAGE_ORDER = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake", "qa")
 KEY_METRICS = ("metric_ref_psnr", "metric_ssim_in", "metric_mask_iou", "metric_lpips", "metric_colour_deviation",

@@ -6,7 +6,7 @@
 - ``draft``: small enough for a 2-core CPU (one photo end to end in a few minutes): tiny
   renders, a small hash grid, short schedules. For previews, tests and the demo.
 
-Everything is overridable by dotted path (``ops.config_tree.apply_overrides``), e.g.
+Everything is overridable by dotted path (``ops.config.tree.apply_overrides``), e.g.
 ``--set texture.guidance.k2d=0`` (the paper's Base row) or ``--set nerf.loop.steps=2000``.
 """
 
@@ -19,16 +19,16 @@ from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import BakeConfig, TextureFieldConfig
-from ops.config_tree import apply_overrides
-from ops.dmtet import DMTetFitConfig
-from ops.nerf_fit import NerfFitConfig, small_field
-from ops.optimise import LoopConfig
-from ops.plan import PlanConfig
-from ops.prior_suite import PriorsConfig
-from ops.qa import QAConfig
-from ops.reference import PrepareConfig
-from ops.texture_refine import TextureRefineConfig
-from ops.uv_bake import UVBakeConfig
+from ops.config.tree import apply_overrides
+from ops.engine.loop import LoopConfig
+from ops.engine.priors import PriorsConfig
+from ops.stages.bake import UVBakeConfig
+from ops.stages.dmtet import DMTetFitConfig
+from ops.stages.nerf import NerfFitConfig, small_field
+from ops.stages.plan import PlanConfig
+from ops.stages.qa import QAConfig
+from ops.stages.reference import PrepareConfig
+from ops.stages.texture import TextureRefineConfig
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from typing import TextIO
 
-from ops.optimise import ProgressEvent
+from ops.engine.loop import ProgressEvent
 
 
 class ConsoleProgress:

@@ -16,10 +16,10 @@ from typing import Any
 from assets_store.catalog import Catalog
 from assets_store.manifest import Manifest
 from assets_store.store import Store
-from ops.pipeline import STAGES, PhotoOutcome
-from ops.qa import QA_FILE, QA_TURNTABLE_FILE, read_report
-from ops.stage_common import RUNLOG_FILE
-from ops.uv_bake import ASSET_GLB
+from ops.engine.pipeline import STAGES, PhotoOutcome
+from ops.engine.stage_io import RUNLOG_FILE
+from ops.stages.bake import ASSET_GLB
+from ops.stages.qa import QA_FILE, QA_TURNTABLE_FILE, read_report
 
 
 def _number(value: Any) -> Any:

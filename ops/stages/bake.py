@@ -22,8 +22,8 @@ from morpheus_core.geometry.mesh import edge_face_counts
 from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig, bake_uv, export_glb, export_obj
-from ops.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
-from ops.stage_common import ReferenceTarget, StageResult, load_module, pick_device, reference_psnr, save_strip
+from ops.engine.stage_io import ReferenceTarget, StageResult, load_module, pick_device, reference_psnr, save_strip
+from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
 
 ASSET_GLB = "asset.glb"
 ASSET_OBJ = "asset.obj"

@@ -22,7 +22,7 @@ Weights file (``lpips.safetensors``), keys = this module's ``state_dict``:
 
 The trunk follows from the key indices and the channel counts and kernel sizes from the tensors,
 so a file with narrower layers (the tests' stand-ins) loads through the same code; strides and
-paddings are the architecture's. ``convert_lpips_checkpoint`` (or ``python -m morpheus_core.lpips
+paddings are the architecture's. ``convert_lpips_checkpoint`` (or ``python -m morpheus_core.metrics.lpips
 --trunk alexnet-owt-7be5be79.pth --lin alex.pth --out lpips.safetensors``) writes the file from
 the official torchvision trunk weights and the LPIPS v0.1 head weights; it needs no torchvision.
 """
@@ -265,7 +265,7 @@ def convert_lpips_checkpoint(src_trunk_pth: Path, src_lin_pth: Path, out: Path, 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m morpheus_core.lpips",
+    parser = argparse.ArgumentParser(prog="python -m morpheus_core.metrics.lpips",
                                      description="Convert official LPIPS weights to lpips.safetensors.")
     parser.add_argument("--trunk", type=Path, required=True, help="torchvision alexnet-owt-7be5be79.pth or vgg16 .pth")
     parser.add_argument("--lin", type=Path, required=True, help="LPIPS v0.1 heads: weights/v0.1/alex.pth or vgg.pth")

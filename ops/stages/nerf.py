@@ -20,12 +20,12 @@ from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
-from ops.guidance_settings import GuidanceSettings
-from ops.guided_task import GuidedTask, RenderedStep
-from ops.object_batch import StageJob
-from ops.optimise import LoopConfig, LoopResult, ProgressFn
-from ops.prior_suite import PriorsConfig, PriorSuite, build_suite
-from ops.stage_common import (
+from ops.engine.batch import StageJob
+from ops.engine.guidance_settings import GuidanceSettings
+from ops.engine.guided_task import GuidedTask, RenderedStep
+from ops.engine.loop import LoopConfig, LoopResult, ProgressFn
+from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.stage_io import (
     ReferenceTarget,
     StageResult,
     load_module,

@@ -20,11 +20,11 @@ from assets_store.atomic import atomic_write, atomic_write_bytes
 from assets_store.runlog import write_runlog
 from morpheus_core.cameras import Cameras, OrbitConfig, reference_camera, sample_orbit, turntable
 from morpheus_core.devices import pick_device  # noqa: F401 - the stages' import path
-from morpheus_core.metrics import psnr
+from morpheus_core.metrics.image import psnr
 from morpheus_core.render.output import RenderOutput
-from ops.config_tree import from_dict, to_dict
-from ops.optimise import LoopResult
-from ops.prior_suite import read_rgba
+from ops.config.tree import from_dict, to_dict
+from ops.engine.loop import LoopResult
+from ops.engine.priors import read_rgba
 
 RUNLOG_FILE = "runlog.parquet"
 PREVIEW_FILE = "preview.png"
