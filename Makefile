@@ -37,9 +37,11 @@ demo: $(STAMP)
 	$(VENV)/bin/morpheus3d report --store $${MORPHEUS_STORE:-outputs/demo} --out $${MORPHEUS_STORE:-outputs/demo}/report.html
 
 # The Dagster UI and daemon (sensor, nightly schedule, backfills) on http://127.0.0.1:3000.
-# The gpu pool's limit starts at this host's GPU count (kept when set before).
+# The gpu pool's limit starts at this host's GPU count (kept when set before); history recorded under the
+# asset keys from before the stage ids were unified shows under the current keys.
 dagster: $(STAMP)
 	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster gpu-pool
+	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster migrate-history
 	$(DAGSTER_ENV) $(VENV)/bin/dagster dev -w workspace.yaml -h 127.0.0.1 -p $${DAGSTER_PORT:-3000}
 
 demo-frequency: $(STAMP)
@@ -50,17 +52,17 @@ demo-frequency: $(STAMP)
 bench-quality: $(STAMP)
 	$(PY) -m benchmarks.quality $(BENCH_ARGS)
 
-# Headless Chromium for tests/test_ui.py (Debian packages), installed when missing and apt-get is there.
-# Never fails the make run: without Chromium that test skips and says why.
+# Headless Chromium for tests/test_ui_*.py (Debian packages), installed when missing and apt-get is there.
+# Never fails the make run: without Chromium those tests skip and say why.
 APT := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n) env DEBIAN_FRONTEND=noninteractive apt-get
 browser:
 	@if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
 	  if command -v apt-get >/dev/null 2>&1; then \
-	    echo "Installing chromium and chromium-driver (apt-get) for tests/test_ui.py"; \
+	    echo "Installing chromium and chromium-driver (apt-get) for tests/test_ui_*.py"; \
 	    { $(APT) update -qq && $(APT) install -y -qq chromium chromium-driver; } >/dev/null 2>&1 \
-	      || echo "Could not install Chromium: tests/test_ui.py will skip"; \
+	      || echo "Could not install Chromium: tests/test_ui_*.py will skip"; \
 	  else \
-	    echo "No apt-get: tests/test_ui.py skips unless /usr/bin/chromium and /usr/bin/chromedriver exist"; \
+	    echo "No apt-get: tests/test_ui_*.py skip unless /usr/bin/chromium and /usr/bin/chromedriver exist"; \
 	  fi; \
 	fi
 

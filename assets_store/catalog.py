@@ -27,21 +27,18 @@ following compaction deletes them); a reader that still lost a file it had liste
 retention, or ``retention_s=0``) gets FileNotFoundError, and a reader whose listing raced a compaction sees
 the set of ``compact-`` files change between its first and its second listing: in both cases it reads that
 day again. So a reader sees either the old files or the new one, never both, never neither.
+
+The files' naming, listing, reading and unifying are in ``assets_store.catalog_files``, the compaction in
+``assets_store.catalog_compaction`` (``Catalog`` inherits it from ``CatalogCompaction``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
-import fcntl
-import json
 import logging
-import os
 import re
-import secrets
-import time
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,6 +50,19 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from assets_store.atomic import atomic_write
+from assets_store.catalog_compaction import CatalogCompaction
+from assets_store.catalog_files import (
+    _THREADS,
+    PART_PREFIX,
+    CatalogError,
+    _compacts,
+    _list_data_files,
+    _new_name,
+    _open,
+    _read_or_error,
+    _replaces,
+    _unify,
+)
 from assets_store.columns import TIMESTAMP, typed_table
 from assets_store.fsutil import fsync_dir
 
@@ -60,24 +70,9 @@ log = logging.getLogger(__name__)
 
 CREATED_AT = "created_at"
 PHOTO_KEY = "photo_key"
-LOCK_FILE = ".compact.lock"
-PART_PREFIX = "part"
-COMPACT_PREFIX = "compact"
-REPLACES_KEY = b"morpheus.catalog.replaces"  # Parquet key-value metadata of a compact file: JSON list of names
 
 _PARTITION = re.compile(r"date=(\d{4}-\d{2}-\d{2})")
-_DATA_FILE = re.compile(r"(part|compact)-\d{8}T\d{12}Z-\d+-[0-9a-f]+\.parquet")
-_TMP_FILE = re.compile(r"\..+\.\d+\.tmp")
 _READ_ATTEMPTS = 5  # re-reads of one day racing compactions before giving up
-_STALE_TMP_S = 24 * 3600.0  # a temporary this old belongs to a killed writer (an append takes milliseconds)
-# Catalog files are small: a read is mostly per-file overhead (open, footer, Python), ~1 ms. Two threads per core
-# overlap the I/O waits; pyarrow's own per-read threads are off (use_threads=False) because with many files in
-# flight they only contend (measured on 2 cores: 1,000 files in 1.06 s this way, 2-3 s with both pools on).
-_THREADS = min(8, 2 * (os.cpu_count() or 1))
-
-
-class CatalogError(RuntimeError):
-    """The catalog cannot answer (e.g. a day kept changing under the reader)."""
 
 
 class CatalogWarning(UserWarning):
@@ -91,18 +86,6 @@ class CatalogRead:
     table: pa.Table
     files: list[Path] = field(default_factory=list)
     skipped: list[tuple[Path, str]] = field(default_factory=list)
-
-
-@dataclass
-class CompactResult:
-    """What ``Catalog.compact`` did. ``busy``: another compaction held the lock, nothing was done."""
-
-    days: list[str] = field(default_factory=list)
-    files_merged: int = 0
-    rows: int = 0
-    files_deleted: int = 0
-    skipped: list[tuple[Path, str]] = field(default_factory=list)
-    busy: bool = False
 
 
 # ---------------------------------------------------------------------------------------------- rows -> table
@@ -122,90 +105,10 @@ def rows_table(rows: Sequence[Mapping[str, Any]]) -> pa.Table:
     return typed_table(rows, "catalog")
 
 
-# ---------------------------------------------------------------------------------------------- file naming
-
-
-def _new_name(prefix: str) -> str:
-    now = dt.datetime.now(dt.timezone.utc)
-    # The time first so names sort by write time (parts of a day are read in write order); pid + 48 random
-    # bits make a clash between writers in the same microsecond practically impossible, with no lock.
-    return f"{prefix}-{now:%Y%m%dT%H%M%S%f}Z-{os.getpid()}-{secrets.token_hex(6)}.parquet"
-
-
-def _list_data_files(day_dir: Path) -> set[str]:
-    try:
-        with os.scandir(day_dir) as it:
-            return {e.name for e in it if _DATA_FILE.fullmatch(e.name) and e.is_file()}
-    except FileNotFoundError:
-        return set()
-
-
-def _compacts(names: set[str]) -> set[str]:
-    return {n for n in names if n.startswith(COMPACT_PREFIX + "-")}
-
-
-def _replaces(pf: pq.ParquetFile) -> set[str]:
-    meta = pf.schema_arrow.metadata or {}
-    raw = meta.get(REPLACES_KEY)
-    return set(json.loads(raw)) if raw else set()
-
-
-def _open(path: Path) -> pq.ParquetFile:
-    # FileNotFoundError propagates (a compaction removed the file: the caller reads the day again); every
-    # other failure means the file itself is bad.
-    return pq.ParquetFile(str(path))
-
-
-def _read_file(path: Path, columns: Sequence[str] | None) -> pa.Table:
-    with _open(path) as pf:
-        if columns is None:
-            return pf.read(use_threads=False)
-        present = set(pf.schema_arrow.names)
-        return pf.read(columns=[c for c in columns if c in present], use_threads=False)
-
-
-def _read_or_error(path: Path, columns: Sequence[str] | None = None) -> pa.Table | Exception:
-    """``_read_file``, with the failure returned instead of raised (one bad file must not stop a pool map)."""
-    try:
-        return _read_file(path, columns)
-    except Exception as exc:
-        return exc
-
-
-# ---------------------------------------------------------------------------------------------- unify
-
-
-def _unify(
-    tables: list[tuple[Path, pa.Table]],
-) -> tuple[pa.Table | None, list[Path], list[tuple[Path, str]]]:
-    """Concatenate tables with schema unification; a table whose types cannot be unified is left out.
-
-    Larger tables are unified first so the types of the many rows win over those of a stray file.
-    """
-    order = sorted(range(len(tables)), key=lambda i: -tables[i][1].num_rows)
-    schema: pa.Schema | None = None
-    kept: set[int] = set()
-    skipped: list[tuple[Path, str]] = []
-    for i in order:
-        path, table = tables[i]
-        try:
-            schema = table.schema if schema is None else pa.unify_schemas(
-                [schema, table.schema], promote_options="permissive")
-        except (pa.ArrowTypeError, pa.ArrowInvalid) as exc:
-            skipped.append((path, f"column types conflict with the rest of the catalog: {exc}"))
-            continue
-        kept.add(i)
-    chosen = [tables[i] for i in sorted(kept)]  # back to read order
-    if not chosen:
-        return None, [], skipped
-    combined = pa.concat_tables([t.replace_schema_metadata(None) for _, t in chosen], promote_options="permissive")
-    return combined, [p for p, _ in chosen], skipped
-
-
 # ---------------------------------------------------------------------------------------------- the catalog
 
 
-class Catalog:
+class Catalog(CatalogCompaction):
     """An append-only Parquet dataset partitioned by UTC day (see the module docstring)."""
 
     def __init__(self, root: Path | str) -> None:
@@ -387,123 +290,7 @@ class Catalog:
         table = self.read(since, read_cols)
         return latest_rows(table, wanted)
 
-    # -- compaction
-
-    @contextlib.contextmanager
-    def _compaction_lock(self) -> Iterator[bool]:
-        self.root.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            try:
-                # Two compactions of one day would each publish a merged file of the same rows; readers would
-                # then read both. flock dies with its process, so a killed compaction never wedges the next.
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                yield False
-                return
-            yield True
-        finally:
-            os.close(fd)
-
-    def compact(
-        self, before: dt.date | None = None, min_files: int = 2, retention_s: float = 600.0
-    ) -> CompactResult:
-        """Merge each past day's files into one ``compact-`` file; return what was done.
-
-        ``before``: only days strictly before it (default: today, UTC — today still gets appends; a late
-        append to a past day is a new part, merged by the next compaction). ``min_files``: a day with fewer
-        live files is left alone. ``retention_s``: replaced files are deleted by the first compaction at least
-        this long after the merged file was published, so readers that listed them meanwhile can still read
-        them (0: at once; readers then re-read a day whose file vanished). Unreadable files are never merged
-        or deleted. No row is dropped: the merged file's row count is checked against its inputs before
-        anything is deleted.
-        """
-        if min_files < 1:
-            raise ValueError("min_files must be at least 1")
-        before = before or dt.datetime.now(dt.timezone.utc).date()
-        result = CompactResult()
-        with self._compaction_lock() as locked:
-            if not locked:
-                result.busy = True
-                return result
-            with ThreadPoolExecutor(_THREADS) as pool:
-                for day in self.days():
-                    if day < before:
-                        self._compact_day(day, min_files, retention_s, result, pool)
-        return result
-
-    def _compact_day(
-        self, day: dt.date, min_files: int, retention_s: float, result: CompactResult, pool: ThreadPoolExecutor
-    ) -> None:
-        directory = self.day_dir(day)
-        now = time.time()
-        self._remove_stale_temporaries(directory, now)
-        names = _list_data_files(directory)  # under the lock only appends add files: this list is complete
-        replaced: dict[str, float] = {}  # replaced name -> publication time of its merged file
-        for name in sorted(_compacts(names)):
-            try:
-                with _open(directory / name) as pf:
-                    covered = _replaces(pf)
-                published = (directory / name).stat().st_mtime
-                for old in covered:
-                    replaced[old] = max(replaced.get(old, 0.0), published)
-            except Exception as exc:
-                # Which files this merged file replaces is unknown: deleting or merging anything here could
-                # lose or duplicate rows, so the day is left as it is.
-                result.skipped.append((directory / name, f"unreadable, day not compacted: {exc}"))
-                return
-        deleted = 0
-        for old, published in replaced.items():
-            if old in names and now - published >= retention_s:
-                (directory / old).unlink(missing_ok=True)
-                names.discard(old)
-                deleted += 1
-        live = sorted(names - replaced.keys())
-        if len(live) >= max(min_files, 2):  # one file is already as merged as it gets
-            tables = []
-            paths = [directory / name for name in live]
-            for path, res in zip(paths, pool.map(_read_or_error, paths), strict=True):
-                if isinstance(res, BaseException):
-                    result.skipped.append((path, f"unreadable, left in place: {res}"))
-                else:
-                    tables.append((path, res))
-            merged, inputs, conflicts = _unify(tables)
-            result.skipped.extend((p, f"{why}; left in place") for p, why in conflicts)
-            if merged is not None and len(inputs) >= min_files:
-                merged_paths = set(inputs)
-                expected = sum(t.num_rows for p, t in tables if p in merged_paths)
-                # Every name still on disk that some merged file replaces stays replaced by the new one too,
-                # so a reader skips it whichever merged file it looks at; names already deleted never return
-                # (names are unique), so they need not be listed.
-                covers = {p.name for p in inputs} | (replaced.keys() & names)
-                merged = merged.replace_schema_metadata({REPLACES_KEY: json.dumps(sorted(covers)).encode()})
-                path = directory / _new_name(COMPACT_PREFIX)
-                atomic_write(path, lambda tmp: pq.write_table(merged, str(tmp)))
-                with _open(path) as pf:
-                    written = pf.metadata.num_rows
-                if written != expected:
-                    path.unlink()
-                    raise CatalogError(f"{path}: merged {written} rows, expected {expected}; nothing deleted")
-                fsync_dir(directory)
-                result.days.append(day.isoformat())
-                result.files_merged += len(inputs)
-                result.rows += written
-                if retention_s <= 0:
-                    for name in covers:
-                        (directory / name).unlink(missing_ok=True)
-                        deleted += 1
-        if deleted:
-            fsync_dir(directory)
-        result.files_deleted += deleted
-
-    @staticmethod
-    def _remove_stale_temporaries(directory: Path, now: float) -> None:
-        with os.scandir(directory) as it:
-            for entry in it:
-                if _TMP_FILE.fullmatch(entry.name):
-                    with contextlib.suppress(FileNotFoundError):
-                        if now - entry.stat().st_mtime > _STALE_TMP_S:
-                            os.unlink(entry.path)
+    # -- compaction: ``compact``, inherited from ``CatalogCompaction`` (assets_store.catalog_compaction)
 
 
 def latest_rows(table: pa.Table, columns: Sequence[str] | None = None) -> pa.Table:

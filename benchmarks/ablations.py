@@ -75,14 +75,14 @@ def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Pa
         for row in rows:
             cfg = schedule.config(device, ("texture.follow_plan=false", *row.overrides))
             t0 = time.perf_counter()
-            out = run_scene(scene, photo, store, cfg, schedule.label, key, until="texture_refine")
+            out = run_scene(scene, photo, store, cfg, schedule.label, key, until="texture")
             if out.error:
                 records.append({"scene": scene.name, "row": row.name, "error": out.error})
                 continue
-            metrics = evaluate(mesh_output(store, key, "texture_refine", dev), scene, eval_cfg)
+            metrics = evaluate(mesh_output(store, key, "texture", dev), scene, eval_cfg)
             records.append({"scene": scene.name, "row": row.name, **metrics,
-                            "texture_wall_s": stage_wall_s(store, key, "texture_refine"),
-                            "guards": stage_guards(store, key, "texture_refine"),
+                            "texture_wall_s": stage_wall_s(store, key, "texture"),
+                            "guards": stage_guards(store, key, "texture"),
                             "bench_wall_s": round(time.perf_counter() - t0, 2)})
             log.info("%s %-16s novel PSNR %.2f  colour dev %.4f  HF %.3f", scene.name, row.name,
                      metrics["novel_psnr"] or float("nan"), metrics["colour_deviation"] or float("nan"),

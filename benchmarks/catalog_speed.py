@@ -41,7 +41,7 @@ def make_rows(n: int, days: int, photos: int) -> list[dict[str, Any]]:
     span = dt.timedelta(days=days) / n
     rows = []
     for i in range(n):
-        failed = rng.choice(["dmtet", "texture_refine"]) if rng.random() < 0.03 else None
+        failed = rng.choice(["dmtet", "texture"]) if rng.random() < 0.03 else None
         rows.append(synthetic_row(rng, f"run{i:07d}", f"photo{rng.randrange(photos):06d}", START + i * span,
                                   failed_at=failed))
     return rows

@@ -22,14 +22,14 @@ from ops.stages.bake import ASSET_GLB
 
 log = logging.getLogger("morpheus3d.bench")
 
-POINTS = ("nerf_fit", "dmtet", "texture_refine", "uv_bake")
+POINTS = ("nerf", "dmtet", "texture", "bake")
 
 
 def _stage_output(store: Store, key: str, stage: str, schedule_cfg: Any, dev: torch.device) -> Reconstruction:
-    if stage == "nerf_fit":
+    if stage == "nerf":
         return nerf_output(store, key, schedule_cfg.nerf.render, dev)
-    if stage == "uv_bake":
-        return glb_output(store.stage_dir(key, "uv_bake") / ASSET_GLB, dev)
+    if stage == "bake":
+        return glb_output(store.stage_dir(key, "bake") / ASSET_GLB, dev)
     return mesh_output(store, key, stage, dev)
 
 
@@ -43,7 +43,7 @@ def run_error_time(scenes: list[Scene], schedules: list[Schedule], device: str, 
         cfg = schedule.config(device, ("texture.follow_plan=false",))
         for scene in scenes:
             out = run_scene(scene, photo_path(scene, work / "photos"), store, cfg, schedule.label, scene.name,
-                            until="uv_bake")
+                            until="bake")
             if out.error:
                 records.append({"schedule": schedule.label, "scene": scene.name, "error": out.error})
                 continue

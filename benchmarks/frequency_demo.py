@@ -32,7 +32,7 @@ from morpheus_core.frequency import high_frequency_ratio, radial_psd
 from morpheus_core.guidance import GuidanceConfig, PriorBinding, hybrid_guidance
 from morpheus_core.guidance_presets import LAMBDA_C, PRIOR_2D, PRIOR_3D, SIGMA, term_2d, term_3d
 from morpheus_core.metrics.image import mean_colour_error, psnr
-from morpheus_core.priors.proxy import ColourDeviation, LowPass, ProxyPrior, constant_target
+from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target
 
 ROOT = Path(__file__).resolve().parent.parent
 

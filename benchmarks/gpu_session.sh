@@ -59,7 +59,7 @@ if [ "$mode" = priors ]; then
 fi
 MORPHEUS_TEST_DEVICE=cuda timeout 170 python -m pytest -q -p no:cacheprovider \
   tests/test_cameras.py tests/test_hashgrid.py tests/test_nerf.py tests/test_volume.py tests/test_raster.py \
-  tests/test_mesh_renderer.py tests/test_texture.py tests/test_tets.py tests/test_dmtet.py \
+  tests/test_mesh_renderer.py tests/test_texture.py tests/test_tets.py tests/test_dmtet.py tests/test_marching_tets.py \
   tests/test_mesh_regularisers.py tests/test_cuda.py tests/test_cuda_priors.py > "$out/pytest_cuda.log" 2>&1
 echo "pytest exit $?" >> "$out/pytest_cuda.log"
 timeout 90 python benchmarks/field_speed.py --device cuda --tag h200 > "$out/field_speed.log" 2>&1

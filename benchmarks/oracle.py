@@ -19,12 +19,12 @@ from torch import Tensor
 from benchmarks.scenes import Scene
 from morpheus_core.cameras import Cameras
 from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D
-from morpheus_core.priors.proxy import ColourDeviation, LowPass
+from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass
 from morpheus_core.render.textured import render_textured
 from ops.config.presets import PipelineConfig
 from ops.engine.priors import PriorSuite, ProxySuite
 
-OPTIMISING_STAGES = ("nerf_fit", "dmtet", "texture_refine")
+OPTIMISING_STAGES = ("nerf", "dmtet", "texture")
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,6 @@ def oracle_suites(scene: Scene, pipeline: PipelineConfig, device: torch.device,
                   cfg: OracleConfig | None = None) -> dict[str, Callable[[], PriorSuite]]:
     """One suite factory per optimising stage, with that stage's roles (for ``run_photo``)."""
     cfg = cfg or OracleConfig()
-    stage_cfgs = {"nerf_fit": pipeline.nerf, "dmtet": pipeline.dmtet, "texture_refine": pipeline.texture}
+    stage_cfgs = {"nerf": pipeline.nerf, "dmtet": pipeline.dmtet, "texture": pipeline.texture}
     return {stage: partial(oracle_suite, scene, c.guidance.roles, c.guidance.vsd_roles, device, cfg)
             for stage, c in stage_cfgs.items()}

@@ -39,19 +39,21 @@ from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
-from ops.engine.batch import BatchTask, StageJob
+from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
 from ops.engine.pipeline import run_photo
-from ops.engine.priors import RealSuite, read_rgba
+from ops.engine.priors import RealSuite
+from ops.engine.stage_job import StageJob
+from ops.engine.target import read_rgba
 from ops.stages.dmtet import start_dmtet
 from ops.stages.nerf import start_nerf
 from ops.stages.texture import start_texture
 
 ROOT = Path(__file__).resolve().parent.parent
 PHOTOS = ROOT / "examples" / "photos"
-STAGES = ("nerf_fit", "dmtet", "texture_refine")
+STAGES = ("nerf", "dmtet", "texture")
 # The paper on an RTX 4090 (DESIGN.md §7): NeRF 26 + DMTet 14 + texture 72 minutes.
-PAPER_MIN = {"nerf_fit": 26.0, "dmtet": 14.0, "texture_refine": 72.0}
+PAPER_MIN = {"nerf": 26.0, "dmtet": 14.0, "texture": 72.0}
 MODES = {"before": {"accel": "eager", "compile": "0"}, "after": {"accel": "cudagraph", "compile": "1"}}
 
 
@@ -91,7 +93,7 @@ class Rig:
         cfg, ref = self.cfg, self.refs[i % len(self.refs)]
         key, out = f"obj{i}", self.work / f"{stage}_{i}"
         out.mkdir(parents=True, exist_ok=True)
-        if stage == "nerf_fit":
+        if stage == "nerf":
             g = cfg.nerf.guidance
             return start_nerf(ref, out, cfg.nerf, cfg.priors, key, str(self.dev), i,
                               self.suite(key, ref, g.roles, g.vsd_roles))
@@ -146,10 +148,10 @@ def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, pro
         row = {"stage": stage, "batch": batch, "setup_s_per_object": round(setup_s, 2)}
         row |= _timed_loop(task, steps, warmup, dev, gen)
         table = _profile(task, dev, gen) if profile else ""
-        if stage != "texture_refine" and (rig.nerf_dir if stage == "nerf_fit" else rig.dmtet_dir) is None:
+        if stage != "texture" and (rig.nerf_dir if stage == "nerf" else rig.dmtet_dir) is None:
             jobs[0].finish(LoopResult([], GuardCounters(), None, 0, 0.0))
             out = rig.work / f"{stage}_0"
-            if stage == "nerf_fit":
+            if stage == "nerf":
                 rig.nerf_dir = out
             else:
                 rig.dmtet_dir = out
@@ -185,7 +187,7 @@ def to_markdown(res: dict) -> str:
              f"torch {res['torch']}; full-size prior architectures with random weights ({res['scale']}); "
              f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}; "
              f"{res['warmup']} warm-up + {res['steps']} timed steps per row (mean); schedule "
-             f"{sched['nerf_fit']} + {sched['dmtet']} + {sched['texture_refine']} steps. "
+             f"{sched['nerf']} + {sched['dmtet']} + {sched['texture']} steps. "
              f"Command: `{res['command']}`.", "",
              "Minutes per object = Σ stages (ms/step × steps / batch + set-up per object), extrapolated from the "
              "steady-state steps (one run cannot hold the whole schedule in a 10-minute device call).", "",
@@ -200,7 +202,7 @@ def to_markdown(res: dict) -> str:
     lines += ["", "| batch | NeRF min | DMTet min | texture min | **min / object** | **objects / GPU-hour** | "
               "peak GiB |", "|---:|---:|---:|---:|---:|---:|---:|"]
     for p in res["projections"]:
-        lines.append(f"| {p['batch']} | {p['nerf_fit_min']} | {p['dmtet_min']} | {p['texture_refine_min']} | "
+        lines.append(f"| {p['batch']} | {p['nerf_min']} | {p['dmtet_min']} | {p['texture_min']} | "
                      f"**{p['min_per_object']}** | **{p['objects_per_gpu_hour']}** | {p['peak_gib']} |")
     lines += ["", f"Paper (RTX 4090): {sum(PAPER_MIN.values()):.0f} min per object "
               f"({' + '.join(f'{v:.0f}' for v in PAPER_MIN.values())})."]
@@ -239,8 +241,8 @@ def main(argv: list[str] | None = None) -> int:
     rig = Rig(cfg, dev, refs, args.scale, work)
     rows: list[dict] = []
     profiles: list[str] = []
-    schedule = {"nerf_fit": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
-                "texture_refine": cfg.texture.loop.steps}
+    schedule = {"nerf": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
+                "texture": cfg.texture.loop.steps}
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine()
     stem = args.out / f"paper_speed_{args.mode}_{args.tag}"
     args.out.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,8 @@ import trimesh
 
 from assets_store.atomic import atomic_write_text
 from morpheus_core.cameras import OrbitConfig, sample_orbit
-from morpheus_core.render.raster import RasterConfig, antialias, interpolate, rasterize, silhouette_crossings
+from morpheus_core.render.antialias import antialias, silhouette_crossings
+from morpheus_core.render.raster import RasterConfig, interpolate, rasterize
 
 # Icosphere subdivisions: 20·4^s faces — 6 → 81,920 (the "~100k" case), 7 → 327,680 ("~300k").
 SUBDIVISIONS = {"100k": 6, "300k": 7}

@@ -21,14 +21,15 @@ from assets_store.store import Store
 from benchmarks.scenes import Scene
 from morpheus_core.cameras import Cameras, orbit
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.metrics.image import colour_deviation, hf_ratio, psnr, ssim
+from morpheus_core.metrics.colour_deviation import colour_deviation
+from morpheus_core.metrics.image import hf_ratio, psnr, ssim
 from morpheus_core.metrics.surface import surface_distance, visible_points
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import VolumeRenderConfig, render_volume
 from morpheus_core.texture import TextureField, TextureFieldConfig
-from ops.engine.stage_io import load_module
+from ops.engine.artifacts import load_module
 from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
 from ops.stages.nerf import NERF_FILE
 
@@ -106,7 +107,7 @@ def evaluate(recon: Reconstruction, scene: Scene, cfg: EvalConfig | None = None)
 
 
 def nerf_output(store: Store, key: str, render: VolumeRenderConfig, device: torch.device) -> Reconstruction:
-    field, _, _ = load_module(store.stage_dir(key, "nerf_fit") / NERF_FILE, NerfField, NerfConfig, device)
+    field, _, _ = load_module(store.stage_dir(key, "nerf") / NERF_FILE, NerfField, NerfConfig, device)
     cfg = VolumeRenderConfig(n_samples=render.n_samples, stratified=False, with_normals=False,
                              chunk_points=render.chunk_points)
     return Reconstruction(lambda cams, r: render_volume(field, cams.to(device=device), r, r, cfg, 1.0),
@@ -114,7 +115,7 @@ def nerf_output(store: Store, key: str, render: VolumeRenderConfig, device: torc
 
 
 def mesh_output(store: Store, key: str, texture_stage: str, device: torch.device) -> Reconstruction:
-    """The DMTet mesh coloured by the texture field of ``texture_stage`` (``dmtet`` or ``texture_refine``)."""
+    """The DMTet mesh coloured by the texture field of ``texture_stage`` (``dmtet`` or ``texture``)."""
     mesh = load_mesh(store.stage_dir(key, "dmtet") / MESH_FILE, device)
     texture, _, _ = load_module(store.stage_dir(key, texture_stage) / TEXTURE_FILE, TextureField,
                                 TextureFieldConfig, device)

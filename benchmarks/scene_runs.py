@@ -15,8 +15,8 @@ from benchmarks.oracle import OracleConfig, oracle_suites
 from benchmarks.scenes import FRAME_FILL, Scene
 from ops.config.presets import PipelineConfig, preset, with_steps
 from ops.config.tree import apply_overrides
+from ops.engine.artifacts import RUNLOG_FILE
 from ops.engine.pipeline import PhotoOutcome, run_photo
-from ops.engine.stage_io import RUNLOG_FILE
 
 log = logging.getLogger("morpheus3d.bench")
 

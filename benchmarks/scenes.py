@@ -12,7 +12,7 @@ it that goes through the same reference stage as a real photo:
 * Parts are closed once their UV-seam copies are welded, outward-wound and free of zero-area faces.
   They may interpenetrate (a handle through a mug wall); the union is still a closed surface per part.
 * Frame: y up, front towards +z (``morpheus_core.cameras``). Each scene is normalised like a photo
-  prepared by ``ops/stages/reference.py``: the reference view's silhouette (opacity ≥ 0.5 at 256 px) is
+  prepared by ``ops/intake/prepare.py``: the reference view's silhouette (opacity ≥ 0.5 at 256 px) is
   centred with its longer side filling ``FRAME_FILL`` of the image, so the ground truth and the
   reconstruction share one frame.
 * Seeded: ``(name, seed)`` fixes colours, print layout and small shape changes, bit for bit.
@@ -41,7 +41,7 @@ from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.textured import TexturedMesh, render_textured, sample_surface
 
 SCENE_NAMES: tuple[str, ...] = ("mug", "bottle", "box", "vase", "sneaker", "lamp", "chair", "figure")
-# Share of the image side taken by the object's longer side: 1 − 2·border_ratio of ops/stages/reference.py.
+# Share of the image side taken by the object's longer side: 1 − 2·border_ratio of ops/intake/prepare.py.
 FRAME_FILL = 0.8
 REFERENCE_FOV_DEG = 40.0
 REFERENCE_DISTANCE = 2.5

@@ -26,7 +26,7 @@ from ops.stages.bake import ASSET_GLB
 log = logging.getLogger("morpheus3d.bench")
 
 STAGES = ("nerf", "dmtet", "texture")
-OPTIMISING = ("nerf_fit", "dmtet", "texture_refine")
+OPTIMISING = ("nerf", "dmtet", "texture")
 
 
 def _all_stages(setting: str, value: object) -> tuple[str, ...]:
@@ -73,7 +73,7 @@ ENTRIES: tuple[Entry, ...] = (
     Entry("tiny object (8% of the photo)", fill=0.08),
     # Its mask touches every border, so the mask confidence would stop it before the optimising stages
     # (as it should for a user's photo): accepted here, since what is tested is their numerics.
-    Entry("frame-filling (cut by the borders)", ("prepare.segment.min_confidence=0",), fill=1.15),
+    Entry("frame-filling (cut by the borders)", ("reference.prepare.segment.min_confidence=0",), fill=1.15),
 )
 
 
@@ -96,7 +96,7 @@ def run_stability(scene: Scene, schedule: Schedule, device: str, work: Path, eva
             rec["overrides"] = list(entry.settings(base))
             cfg = schedule.config(device, ("texture.follow_plan=false", *rec["overrides"]))
             out = run_scene(scene, photo_path(scene, work / "photos", entry.fill), store, cfg, schedule.label, key,
-                            until="uv_bake")
+                            until="bake")
             rec["finished"] = out.error is None
             rec["error"] = out.error
         except Exception as exc:
@@ -104,10 +104,10 @@ def run_stability(scene: Scene, schedule: Schedule, device: str, work: Path, eva
         rec["guards"] = {stage: stage_guards(store, key, stage) for stage in OPTIMISING}
         rec["guard_events"] = sum(sum(g.values()) for g in rec["guards"].values())
         if rec["finished"]:
-            glb = store.stage_dir(key, "uv_bake") / ASSET_GLB
+            glb = store.stage_dir(key, "bake") / ASSET_GLB
             rec["finite_outputs"] = _finite_glb(glb)
             metrics = evaluate(glb_output(glb, dev), scene, eval_cfg)
-            rec["ref_psnr_glb"] = store.read_manifest(key, "uv_bake").metrics.get("ref_psnr")
+            rec["ref_psnr_glb"] = store.read_manifest(key, "bake").metrics.get("ref_psnr")
             if entry.aligned:
                 rec.update({k: metrics[k] for k in ("novel_psnr", "colour_deviation", "chamfer")})
             rec["finite_metrics"] = all(v is None or math.isfinite(v) for v in metrics.values())

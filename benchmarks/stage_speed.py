@@ -22,13 +22,14 @@ from pathlib import Path
 import torch
 
 from assets_store.store import Store
-from morpheus_core.geometry.dmtet import DMTet, DMTetConfig
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.texture import TextureField
 from ops.config.presets import preset
+from ops.engine.artifacts import save_module
 from ops.engine.loop import LoopConfig, run_loop
 from ops.engine.pipeline import run_photo
 from ops.engine.priors import build_suite
-from ops.engine.stage_io import ReferenceTarget, save_module
+from ops.engine.target import ReferenceTarget
 from ops.stages.dmtet import DMTetTask, choose_grid, init_from_nerf
 from ops.stages.nerf import NERF_FILE, NerfTask
 from ops.stages.plan import read_plan
@@ -70,7 +71,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
 
     suite = build_suite(cfg.priors, dev, ref_dir, key, ("3d",))
     nerf = NerfTask(cfg.nerf, ReferenceTarget.load(ref_dir, cfg.nerf.resolution, dev), suite, dev, gen)
-    rows["nerf_fit"] = _time(nerf, steps, warmup, dev, gen) | {"resolution": cfg.nerf.resolution,
+    rows["nerf"] = _time(nerf, steps, warmup, dev, gen) | {"resolution": cfg.nerf.resolution,
                                                                 "samples": cfg.nerf.render.n_samples}
     work = Path(tempfile.mkdtemp())
     save_module(work / NERF_FILE, nerf.field, cfg.nerf.model, {"occupancy": nerf.occupancy.density})
@@ -78,7 +79,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     plan = read_plan(ref_dir)
     grid = choose_grid(cfg.dmtet, plan.dmtet_grid.value if plan else None)
     dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.dmtet.deform_scale), device=dev)
-    texture = TextureField(cfg.dmtet.texture, generator=gen).to(dev)
+    texture = TextureField(cfg.dmtet.texture_field, generator=gen).to(dev)
     init_from_nerf(dmtet, texture, work / NERF_FILE, cfg.dmtet, dev, gen)
     dtask = DMTetTask(cfg.dmtet, ReferenceTarget.load(ref_dir, cfg.dmtet.resolution, dev), suite, dmtet, texture, dev)
     faces = dtask.mesh().num_faces
@@ -90,10 +91,10 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     suite2 = build_suite(cfg.priors, dev, ref_dir, key, cfg.texture.guidance.roles, cfg.texture.guidance.vsd_roles)
     ttask = TextureTask(cfg.texture, ReferenceTarget.load(ref_dir, cfg.texture.resolution, dev), suite2, mesh,
                         texture, dev)
-    rows["texture_refine"] = _time(ttask, steps, warmup, dev, gen) | {"resolution": cfg.texture.resolution,
+    rows["texture"] = _time(ttask, steps, warmup, dev, gen) | {"resolution": cfg.texture.resolution,
                                                                       "faces": faces}
-    schedule = {"nerf_fit": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
-                "texture_refine": cfg.texture.loop.steps}
+    schedule = {"nerf": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
+                "texture": cfg.texture.loop.steps}
     for stage, row in rows.items():
         row["schedule_steps"] = schedule[stage]
         row["projected_min"] = round(row["ms_per_step"] * schedule[stage] / 60000, 2)

@@ -6,6 +6,7 @@ import argparse
 import datetime as dt
 import importlib
 import importlib.metadata as md
+import json
 import platform
 import re
 import sys
@@ -14,6 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry, rembg_model_file
+from ops.engine.stage_ids import STAGE_IDS, current_stage_id
 
 PACKAGES = (
     "torch", "numpy", "diffusers", "transformers", "peft", "safetensors", "dagster", "dagster-webserver",
@@ -124,8 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override any setting, e.g. --set nerf.loop.steps=300 --set texture.guidance.k2d=0")
     run.add_argument("--device", help="cpu, cuda, cuda:1 … (default: auto)")
-    run.add_argument("--until", default="qa", choices=["reference", "nerf_fit", "dmtet", "texture_refine",
-                                                        "uv_bake", "qa"], help="stop after this stage")
+    run.add_argument("--until", default="qa", type=current_stage_id, choices=STAGE_IDS, help="stop after this stage")
     run.add_argument("--batch", type=int, default=1, metavar="N",
                      help="optimise N photos together: they share each prior forward, outputs as one by one. "
                           "On a GPU, 4-8 photos per batch (higher throughput); on a CPU keep 1 (default). A killed "
@@ -153,7 +154,8 @@ def parse_day(text: str) -> dt.date:
 
 def report_command(args: argparse.Namespace) -> int:
     """Write the catalog report; exit 2 on bad arguments, 1 when the catalog cannot be read."""
-    from assets_store.catalog import Catalog, CatalogError
+    from assets_store.catalog import Catalog
+    from assets_store.catalog_files import CatalogError
     from assets_store.store import Store
     from ops.reporting.report import build_report, write_report
 
@@ -198,10 +200,11 @@ def run_command(args: argparse.Namespace) -> int:
     import logging
 
     from assets_store.keys import assign_keys
-    from assets_store.store import Store
     from ops.config.presets import preset
-    from ops.config.tree import ConfigError, flat_keys
-    from ops.engine.pipeline import run_batch, run_photo
+    from ops.config.tree import ConfigError, describe_keys, to_dict
+    from ops.engine.pipeline import run_photo
+    from ops.engine.pipeline_batch import run_batch
+    from ops.engine.store_layout import open_store
     from ops.intake.prepare_batch import list_photos
     from ops.reporting.catalog_rows import record_outcomes
     from ops.reporting.progress import ConsoleProgress
@@ -219,7 +222,8 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"morpheus3d run: {exc}", file=sys.stderr)
         return 2
     if args.list_keys:
-        print("\n".join(flat_keys(cfg)))
+        for key, value, doc in describe_keys(cfg):
+            print(f"{key:<52} {json.dumps(to_dict(value), default=str):<12} {doc}")
         return 0
     if args.init_mesh is not None and not args.init_mesh.is_file():
         print(f"morpheus3d run: --init-mesh {args.init_mesh}: no such file", file=sys.stderr)
@@ -235,7 +239,7 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"morpheus3d run: {args.photo}: no such file or folder", file=sys.stderr)
         return 2
     keys = assign_keys(p.name for p in photos)
-    store = Store(args.out)
+    store = open_store(args.out)
     progress = ConsoleProgress()
     outcomes = []
     if args.batch == 1:
@@ -258,10 +262,10 @@ def run_command(args: argparse.Namespace) -> int:
 def prepare(args: argparse.Namespace) -> int:
     """Prepare one photo or a folder; print the outcome table; exit 1 only for failures under --strict."""
     from ops.intake.photo import LoadConfig
+    from ops.intake.prepare import PrepareConfig
     from ops.intake.prepare_batch import format_table, list_photos, prepare_many, print_progress
     from ops.intake.segment import SegmentConfig
     from ops.stages.plan import PlanConfig
-    from ops.stages.reference import PrepareConfig
 
     try:
         cfg = PrepareConfig(

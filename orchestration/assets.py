@@ -12,7 +12,6 @@ forward per step for all of them) unless ``MORPHEUS_BATCH_TOGETHER=0``.
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from typing import Any
 
 import dagster as dg
@@ -20,12 +19,14 @@ from dagster import AssetExecutionContext
 
 from assets_store.keys import UnsafeKeyError
 from assets_store.photo_hashes import PhotoHashes
-from morpheus_core.proxy_shape import EmptySilhouetteError
+from morpheus_core.priors.proxy.shape import EmptySilhouetteError
 from ops.config.tree import ConfigError
 from ops.engine.loop import ProgressEvent
-from ops.engine.pipeline import CODE_VERSIONS, MissingUpstreamError, StageOutcome, output_digest
+from ops.engine.pipeline import MissingUpstreamError, StageOutcome, output_digest
+from ops.engine.stage import Stage
 from ops.intake.errors import PreparationError
-from ops.stages.qa import CHECKS, ERROR, QACheck, read_report, stage_checks
+from ops.stages import STAGES
+from ops.stages.checks import CHECKS, ERROR, QACheck, read_report, stage_checks
 from orchestration.metadata import check_metadata, stage_metadata
 from orchestration.partitions import PHOTOS, photos
 from orchestration.resources import MorpheusResource, UnknownPhotoError
@@ -40,34 +41,8 @@ PERMANENT = (PreparationError, ConfigError, MissingUpstreamError, UnknownPhotoEr
              EmptySilhouetteError)
 
 
-@dataclass(frozen=True)
-class StageAsset:
-    name: str
-    stage: str
-    deps: tuple[str, ...]
-    gpu: bool
-    description: str
-
-
-STAGE_ASSETS = (
-    StageAsset("reference", "reference", ("photo_files",), False,
-               "Segmentation, mask and recentred reference views of the photo, plus the stage plan "
-               "(DMTet grid, whether high-pass refinement pays, export face budget)."),
-    StageAsset("nerf_field", "nerf_fit", ("reference",), True,
-               "Stage 1a: hash-grid NeRF fitted to the reference under the 3D prior (SDS, t annealed 0.98 → 0.5)."),
-    StageAsset("dmtet_mesh", "dmtet", ("reference", "nerf_field"), True,
-               "Stage 1b: DMTet surface initialised from the NeRF density, mesh and texture field refined."),
-    StageAsset("refined_texture", "texture_refine", ("reference", "dmtet_mesh"), True,
-               "Stage 2: texture refined with the 3D prior (full band) and the 2D prior's VSD on the high "
-               "frequencies; a recorded pass-through when the plan finds the texture flat."),
-    StageAsset("uv_asset", "uv_bake", ("reference", "dmtet_mesh", "refined_texture"), False,
-               "UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews."),
-    StageAsset("qa_report", "qa", ("uv_asset",), False,
-               "QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its "
-               "parts against the photo's mask and the NeRF's silhouettes, and every stage's checks; verdict "
-               "pass / warn / fail with reasons (qa.json)."),
-)
-ASSET_OF_STAGE = {a.stage: a.name for a in STAGE_ASSETS}
+# What a stage with no upstream stage reads: the photo source asset.
+PHOTO_SOURCE = "photo_files"
 
 
 def _severity(check: QACheck) -> dg.AssetCheckSeverity:
@@ -124,13 +99,13 @@ def _run_one(context: AssetExecutionContext, morpheus: MorpheusResource, stage: 
         raise failure from exc
 
 
-def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.AssetsDefinition:
-    check_specs = [dg.AssetCheckSpec(c.name, asset=spec.name, description=c.description, partitions_def=photos)
-                   for c in CHECKS[spec.stage]]
+def _make_stage_asset(spec: Stage, settings: OrchestrationSettings) -> dg.AssetsDefinition:
+    check_specs = [dg.AssetCheckSpec(c.name, asset=spec.id, description=c.description, partitions_def=photos)
+                   for c in CHECKS[spec.id]]
 
     @dg.asset(
-        name=spec.name, description=spec.description, group_name=GROUP, partitions_def=photos,
-        deps=list(spec.deps), code_version=CODE_VERSIONS[spec.stage], check_specs=check_specs,
+        name=spec.id, description=spec.description, group_name=GROUP, partitions_def=photos,
+        deps=list(spec.reads or (PHOTO_SOURCE,)), code_version=spec.code_version, check_specs=check_specs,
         pool=GPU_POOL if spec.gpu else None, op_tags=GPU_TAGS if spec.gpu else None,
         kinds={"pytorch"} if spec.gpu else {"python"},
         retry_policy=dg.RetryPolicy(max_retries=settings.max_retries, delay=settings.retry_delay_s,
@@ -140,13 +115,13 @@ def _make_stage_asset(spec: StageAsset, settings: OrchestrationSettings) -> dg.A
     def stage_asset(context: AssetExecutionContext, morpheus: MorpheusResource) -> Iterator[Any]:
         keys = list(context.partition_keys)
         if len(keys) == 1:
-            outcome = _run_one(context, morpheus, spec.stage, keys[0], settings.max_retries)
-            if spec.stage == "qa":
-                morpheus.record(keys[0], context.run.run_id, {spec.stage: outcome.status})
+            outcome = _run_one(context, morpheus, spec.id, keys[0], settings.max_retries)
+            if spec.id == "qa":
+                morpheus.record(keys[0], context.run.run_id, {spec.id: outcome.status})
             checks = _checks(outcome, morpheus, keys[0])
             assert outcome.manifest is not None
             yield dg.MaterializeResult(
-                metadata=stage_metadata(outcome, morpheus.store().stage_dir(keys[0], spec.stage)),
+                metadata=stage_metadata(outcome, morpheus.store().stage_dir(keys[0], spec.id)),
                 data_version=dg.DataVersion(output_digest(outcome.manifest)),
                 check_results=[dg.AssetCheckResult(check_name=c.name, passed=c.passed, severity=_severity(c),
                                                    description=c.message, metadata=check_metadata(c))
@@ -177,25 +152,25 @@ def _stage_outcomes(context: AssetExecutionContext, morpheus: MorpheusResource, 
             yield key, exc
 
 
-def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: StageAsset,
+def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Stage,
            keys: list[str], max_retries: int, together: bool) -> Iterator[Any]:
     """A step over several photos (run ``together`` as one batch, or one after another): one
     photo's failure does not stop the others."""
     done: dict[str, tuple[StageOutcome, list[QACheck]]] = {}
     failed: dict[str, str] = {}
     retry = False  # whether any failure might pass on a retry (bad input never does)
-    for key, outcome in _stage_outcomes(context, morpheus, spec.stage, keys, together):
+    for key, outcome in _stage_outcomes(context, morpheus, spec.id, keys, together):
         try:
             if isinstance(outcome, Exception):
-                raise _failure(context, morpheus, spec.stage, key, outcome, max_retries)
+                raise _failure(context, morpheus, spec.id, key, outcome, max_retries)
             done[key] = (outcome, _checks(outcome, morpheus, key))
-            if spec.stage == "qa":
-                morpheus.record(key, context.run.run_id, {spec.stage: outcome.status})
+            if spec.id == "qa":
+                morpheus.record(key, context.run.run_id, {spec.id: outcome.status})
         except Exception as exc:  # recorded per photo; the step fails below
             failed[key] = f"{type(exc).__name__}: {exc}"
             retry = retry or not (isinstance(exc, dg.Failure) and not exc.allow_retries)
-            context.log.error(f"{key}: {spec.stage} failed: {failed[key]}")
-    asset_key = dg.AssetKey(spec.name)
+            context.log.error(f"{key}: {spec.id} failed: {failed[key]}")
+    asset_key = dg.AssetKey(spec.id)
     for key, (_, checks) in done.items():
         for c in checks:
             yield dg.AssetCheckEvaluation(
@@ -206,8 +181,8 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
         for key, (outcome, _) in done.items():
             yield dg.AssetMaterialization(
                 asset_key=asset_key, partition=key,
-                metadata=stage_metadata(outcome, morpheus.store().stage_dir(key, spec.stage)))
-        raise dg.Failure(description=f"{spec.name}: {len(failed)} of {len(keys)} photos failed: "
+                metadata=stage_metadata(outcome, morpheus.store().stage_dir(key, spec.id)))
+        raise dg.Failure(description=f"{spec.id}: {len(failed)} of {len(keys)} photos failed: "
                          + "; ".join(f"{k}: {v}" for k, v in failed.items()),
                          metadata={"failed": dg.MetadataValue.json(failed)}, allow_retries=retry)
     table = ["| photo | status | wall s | ref PSNR | verdict / checks |", "|---|---|---|---|---|"]
@@ -219,7 +194,7 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
         table.append(f"| {key} | {outcome.status} | {m.wall_time_s:.1f} | "
                      f"{'' if psnr is None else f'{psnr:.1f}'} | {', '.join(bad) or 'all passed'} |")
     summaries = []
-    for c in CHECKS[spec.stage]:
+    for c in CHECKS[spec.id]:
         failing = [k for k, (_, cs) in done.items() if any(x.name == c.name and not x.passed for x in cs)]
         summaries.append(dg.AssetCheckResult(
             check_name=c.name, passed=not failing,
@@ -231,7 +206,7 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
 
 def build_photo_source(settings: OrchestrationSettings) -> dg.SourceAsset:
     @dg.observable_source_asset(
-        name="photo_files", group_name=GROUP, partitions_def=photos, required_resource_keys={"morpheus"},
+        name=PHOTO_SOURCE, group_name=GROUP, partitions_def=photos, required_resource_keys={"morpheus"},
         description="The product photos in the watched folder; data version = content hash (sha256), so a "
                     "changed photo makes exactly its own partition's stages stale.")
     def photo_files(context: AssetExecutionContext) -> dg.DataVersionsByPartition:
@@ -247,7 +222,5 @@ def build_photo_source(settings: OrchestrationSettings) -> dg.SourceAsset:
 
 
 def build_assets(settings: OrchestrationSettings) -> list[Any]:
-    return [build_photo_source(settings), *(_make_stage_asset(s, settings) for s in STAGE_ASSETS)]
+    return [build_photo_source(settings), *(_make_stage_asset(s, settings) for s in STAGES)]
 
-
-STAGE_ASSET_NAMES = tuple(a.name for a in STAGE_ASSETS)

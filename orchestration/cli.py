@@ -4,6 +4,7 @@
     morpheus3d-dagster materialize [NAME ...]       run all six assets per photo, in this process
     morpheus3d-dagster status                       fresh / stale / missing per photo
     morpheus3d-dagster gpu-pool [--limit N]         set the "gpu" pool's limit to this host's GPU count
+    morpheus3d-dagster migrate-history              carry materialisations of renamed asset keys over
 
 Runs are recorded in the instance at ``$DAGSTER_HOME`` (``make dagster`` shows them in the UI).
 Backfills through the daemon: ``dagster job backfill -w workspace.yaml -j morpheus_photos
@@ -24,9 +25,10 @@ import dagster as dg
 
 from ops.engine.gpu_lease import GPUS_ENV, gpu_count
 from ops.stages.bake import ASSET_GLB
-from ops.stages.qa import read_report
+from ops.stages.checks import read_report
 from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB, build_definitions
+from orchestration.history import migrate_history
 from orchestration.partitions import PHOTOS
 from orchestration.resources import MorpheusResource
 from orchestration.schedules import needs_run
@@ -76,7 +78,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
                                         tags={"morpheus/trigger": "cli"}, run_config=QUIET)
         wall = time.perf_counter() - start
         store = resource.store()
-        glb = store.stage_dir(key, "uv_bake") / ASSET_GLB
+        glb = store.stage_dir(key, "bake") / ASSET_GLB
         if result.success:
             report = read_report(store.stage_dir(key, "qa"))
             psnr = report.metrics.get("ref_psnr")
@@ -127,6 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     pool = sub.add_parser("gpu-pool", help="set the gpu pool's limit to the number of GPUs found")
     pool.add_argument("--limit", type=int, help="this limit instead of the GPU count")
     pool.add_argument("--force", action="store_true", help="replace a limit set before")
+    sub.add_parser("migrate-history", help="show the materialisations of the asset keys from before the stage ids "
+                                           "were unified under the current keys (once; `make dagster` runs it)")
     args = parser.parse_args(argv)
     if args.command == "gpu-pool":
         return gpu_pool(args.limit, args.force)
@@ -142,6 +146,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         keys = _select(resource, args.names)
         _instance().add_dynamic_partitions(PHOTOS, keys)
         print(",".join(keys))
+        return 0
+    if args.command == "migrate-history":
+        carried = migrate_history(_instance(), resource.store())
+        print("carried over: " + ", ".join(f"{k} {n}" for k, n in carried.items()))
         return 0
     if args.command == "status":
         keys = _instance().get_dynamic_partitions(PHOTOS)

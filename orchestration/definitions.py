@@ -1,7 +1,7 @@
 """The Dagster code location loaded by ``workspace.yaml`` (``make dagster`` from the repo root).
 
-Assets: ``photo_files`` (observable source: the watched folder) → ``reference`` → ``nerf_field`` →
-``dmtet_mesh`` → ``refined_texture`` → ``uv_asset`` → ``qa_report``, one dynamic partition per photo.
+Assets: ``photo_files`` (observable source: the watched folder) → ``reference`` → ``nerf`` → ``dmtet`` →
+``texture`` → ``bake`` → ``qa`` (the stage ids of ``ops.stages``), one dynamic partition per photo.
 The job ``morpheus_photos`` runs all six for the photos it is given (sensor, nightly schedule,
 backfills). Configuration: ``orchestration.settings`` (environment variables).
 """
@@ -12,7 +12,8 @@ import warnings
 
 import dagster as dg
 
-from orchestration.assets import STAGE_ASSET_NAMES, build_assets
+from ops.engine.stage_ids import STAGE_IDS
+from orchestration.assets import build_assets
 from orchestration.resources import MorpheusResource
 from orchestration.schedules import build_nightly_schedule
 from orchestration.sensors import build_folder_sensor
@@ -27,7 +28,7 @@ def build_definitions(executor: dg.ExecutorDefinition | None = None,
     photo's stages run in order anyway, and the priors' model cache then lives across stages) or
     multiprocess (each step in its own process; models are re-loaded from disk per step)."""
     settings = settings or OrchestrationSettings.from_env()
-    job = dg.define_asset_job(JOB, selection=dg.AssetSelection.assets(*STAGE_ASSET_NAMES),
+    job = dg.define_asset_job(JOB, selection=dg.AssetSelection.assets(*STAGE_IDS),
                               description="All six stages for the photos (partitions) it is given.")
     resource = MorpheusResource(photo_dir=settings.photo_dir, store_root=settings.store_root, preset=settings.preset,
                                 overrides=list(settings.overrides), settle_seconds=settings.settle_seconds)

@@ -12,11 +12,9 @@ from dagster import MetadataValue
 
 from assets_store.manifest import Manifest
 from ops.engine.pipeline import StageOutcome
-from ops.stages.qa import QACheck
+from ops.stages import BY_ID
+from ops.stages.checks import QACheck
 
-# The image people look at per stage (the reference's mask overlay, renders, the GLB turntable).
-PREVIEWS = {"reference": "preview.png", "nerf_fit": "preview.png", "dmtet": "preview.png",
-            "texture_refine": "preview.png", "uv_bake": "turntable.png", "qa": "turntable.png"}
 MAX_PREVIEW_BYTES = 400_000  # the UI stores metadata in the event log: keep it small
 
 
@@ -69,7 +67,7 @@ def stage_metadata(outcome: StageOutcome, stage_dir: Path) -> dict[str, Any]:
         meta["notes"] = MetadataValue.md("\n".join(f"- {n}" for n in m.notes))
     if "asset.glb" in m.outputs:
         meta["glb"] = MetadataValue.path(str(stage_dir / "asset.glb"))
-    preview = preview_markdown(stage_dir / PREVIEWS[m.stage], f"{m.photo_key} · {m.stage}")
+    preview = preview_markdown(stage_dir / BY_ID[m.stage].preview, f"{m.photo_key} · {m.stage}")
     if preview is not None:
         meta["preview"] = preview
     return meta

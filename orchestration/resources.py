@@ -13,7 +13,9 @@ from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.loop import ProgressFn
-from ops.engine.pipeline import StageOutcome, photo_status, run_stage, run_stage_batch
+from ops.engine.pipeline import StageOutcome, photo_status, run_stage
+from ops.engine.pipeline_batch import run_stage_batch
+from ops.engine.store_layout import open_store
 from ops.intake import photo_folder
 from ops.reporting.catalog_rows import photo_row
 
@@ -33,7 +35,7 @@ class MorpheusResource(ConfigurableResource):
         return preset(self.preset, self.overrides)
 
     def store(self) -> Store:
-        return Store(self.store_root)
+        return open_store(self.store_root)
 
     def photos(self) -> dict[str, str]:
         """Photo key → file name in the watched folder."""

@@ -7,8 +7,8 @@ import datetime as dt
 import random
 from typing import Any
 
-STAGES = ("reference", "nerf_fit", "dmtet", "texture_refine", "uv_bake", "qa")
-LOGGED_STAGES = ("nerf_fit", "dmtet", "texture_refine")  # the stages with an optimisation loop and a run log
+STAGES = ("reference", "nerf", "dmtet", "texture", "bake", "qa")
+LOGGED_STAGES = ("nerf", "dmtet", "texture")  # the stages with an optimisation loop and a run log
 METRICS = ("ref_psnr", "ssim_in", "mask_iou", "hf_ratio", "colour_deviation", "lpips", "uv_coverage",
            "texel_density", "watertight", "mesh_faces", "novel_view_clip", "silhouette_iou", "depth_consistency",
            "normal_smoothness", "edge_sharpness", "texture_entropy")
@@ -70,7 +70,7 @@ def synthetic_row(
     bad = [name for name, v in zip(CHECKS, verdicts, strict=True) if v in ("warn", "fail")]
     row["reasons"] = "; ".join(f"{name} below threshold" for name in bad)
     paths = paths or {}
-    row["glb_path"] = paths.get("glb", f"{photo_key}/uv_bake/asset.glb")
+    row["glb_path"] = paths.get("glb", f"{photo_key}/bake/asset.glb")
     row["preview_path"] = paths.get("preview", f"{photo_key}/qa/turntable.png")
     for stage in LOGGED_STAGES:  # a stage that never ran has no log
         ran = STAGES.index(stage) <= failed_index

@@ -20,7 +20,7 @@ TINY_OVERRIDES = [
     "dmtet.resolution=40", "dmtet.max_grid=24", "dmtet.colour_fit_steps=40", "dmtet.colour_fit_points=2048",
     "dmtet.conversion.ring_views=3", "dmtet.conversion.resolution=32", "dmtet.conversion.samples=24",
     "texture.resolution=40", "texture.follow_plan=false",
-    "bake.bake.texture_size=64", "bake.eval_resolution=64", "bake.turntable_views=4",
+    "bake.map.texture_size=64", "bake.eval_resolution=64", "bake.turntable_views=4",
     "qa.eval_resolution=64", "qa.turntable_views=4", "qa.turntable_resolution=64",
     "qa.part_resolution=32", "qa.part_samples=24",
 ]

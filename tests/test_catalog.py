@@ -19,7 +19,9 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
-from assets_store.catalog import LOCK_FILE, REPLACES_KEY, Catalog, CatalogWarning, rows_table
+from assets_store.catalog import Catalog, CatalogWarning, rows_table
+from assets_store.catalog_compaction import LOCK_FILE
+from assets_store.catalog_files import REPLACES_KEY
 from tests import catalog_workers
 from tests.catalog_rows import synthetic_row
 

@@ -9,7 +9,7 @@ from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.frequency import BandMask, dct2, filter_residual, idct2
 from morpheus_core.guidance import PriorBinding, TermDraw, hybrid_guidance
 from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage2_texture
-from morpheus_core.priors.proxy import ColourDeviation, LowPass, ProxyPrior, constant_target
+from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
@@ -58,11 +58,11 @@ def test_guidance_on_cuda_matches_cpu(tf32_on) -> None:
 
 
 def test_decimating_a_cuda_mesh_keeps_it_on_the_gpu() -> None:
-    """uv_bake decimates meshes over the face budget; on CUDA its faces once came back on the CPU."""
+    """The bake stage decimates meshes over the face budget; on CUDA its faces once came back on the CPU."""
     import trimesh
 
+    from morpheus_core.export.uv_bake import cluster_decimate
     from morpheus_core.geometry.mesh import Mesh
-    from morpheus_core.texture import cluster_decimate
 
     s = trimesh.creation.icosphere(subdivisions=5)
     mesh = Mesh(torch.tensor(s.vertices, dtype=torch.float32).cuda(), torch.tensor(s.faces).cuda())

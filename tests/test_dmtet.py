@@ -1,4 +1,5 @@
-"""DMTet: marching-tets table and winding, the sphere at grid 64, gradients, guards, ties, init.
+"""DMTet: the sphere at grid 64, the face budget, gradients, guards, init from a density, the SDF
+sign-change regulariser, the state dict (the case table and ties: ``tests/test_marching_tets.py``).
 
 Device-aware tests take the ``device`` fixture (``MORPHEUS_TEST_DEVICE=cuda pytest`` for a GPU).
 """
@@ -6,28 +7,23 @@ Device-aware tests take the ``device`` fixture (``MORPHEUS_TEST_DEVICE=cuda pyte
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-import trimesh
 from torch.func import functional_call
 
-from morpheus_core.geometry.dmtet import (
+from morpheus_core.geometry.marching_tets import EmptySurfaceError, NonFiniteFieldError, marching_tets
+from morpheus_core.geometry.mesh import Mesh, edge_face_counts, surface_area, unique_edges
+from morpheus_core.geometry.tet_surface import (
     FACES_PER_CELL_AREA,
-    TRIANGLE_COUNT,
-    DMTet,
     DMTetConfig,
-    EmptySurfaceError,
-    NonFiniteFieldError,
     estimate_faces,
-    marching_tets,
     sdf_sign_change_loss,
     suggest_resolution,
 )
-from morpheus_core.geometry.mesh import Mesh, edge_face_counts, surface_area, unique_edges
+from tests.meshes import make_dmtet, signed_volume, sphere, to_trimesh
 
 
 @pytest.fixture(scope="module")
@@ -35,57 +31,8 @@ def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("tets")
 
 
-def _dmtet(res: int, cache_dir: Path, device="cpu", dtype=torch.float32, **kw) -> DMTet:
-    return DMTet(DMTetConfig(resolution=res, **kw), device=device, dtype=dtype, cache_dir=cache_dir)
-
-
-def _trimesh(mesh: Mesh) -> trimesh.Trimesh:
-    # process=False: trimesh must judge our connectivity, not a re-merged copy of it.
-    return trimesh.Trimesh(mesh.vertices.detach().cpu().double().numpy(), mesh.faces.cpu().numpy(), process=False)
-
-
 def _detached(mesh: Mesh) -> Mesh:
     return Mesh(mesh.vertices.detach(), mesh.faces)
-
-
-def _signed_volume(mesh: Mesh) -> float:
-    v = mesh.face_vertices().detach().double()
-    return float((v[:, 0] * torch.linalg.cross(v[:, 1], v[:, 2], dim=-1)).sum() / 6)
-
-
-def _sphere(r: float):
-    return lambda p: p.norm(dim=-1) - r
-
-
-# ---------------------------------------------------------------- the 16-case table, one tet at a time
-
-
-@pytest.mark.parametrize("case", range(1, 15))
-def test_every_case_separates_inside_from_outside_with_outward_winding(case: int) -> None:
-    g = torch.Generator().manual_seed(case)
-    tet = torch.tensor([[0, 1, 2, 3]])
-    for _ in range(25):
-        v = torch.randn(4, 3, generator=g, dtype=torch.float64)
-        if torch.linalg.det(v[1:] - v[:1]) < 0:
-            v = v[[0, 2, 1, 3]]
-        inside = torch.tensor([(case >> c) & 1 for c in range(4)], dtype=torch.bool)
-        mag = 0.05 + torch.rand(4, generator=g, dtype=torch.float64)
-        sdf = torch.where(inside, -mag, mag)
-        mesh = marching_tets(v, tet, sdf)
-        assert mesh.num_faces == TRIANGLE_COUNT[case] == (2 if int(inside.sum()) == 2 else 1)
-        assert mesh.num_vertices == (4 if mesh.num_faces == 2 else 3)
-        # The crossings are zeros of the linear interpolant of the SDF over the tet.
-        coef = torch.linalg.solve(torch.cat([v, torch.ones(4, 1, dtype=v.dtype)], 1), sdf)
-        values = mesh.vertices @ coef[:3] + coef[3]
-        assert values.abs().max() < 1e-12
-        n = mesh.face_normals(normalize=True)
-        q = mesh.face_vertices()[:, 0]
-        side = ((v[None] - q[:, None]) * n[:, None]).sum(-1)  # (F, 4): signed distance of corners
-        assert (side[:, inside] < 0).all() and (side[:, ~inside] > 0).all()
-        if mesh.num_faces == 2:  # the quad's two halves share their diagonal in opposite directions
-            e0 = {(int(a), int(b)) for a, b in mesh.faces[0, [[0, 1], [1, 2], [2, 0]]]}
-            e1 = {(int(b), int(a)) for a, b in mesh.faces[1, [[0, 1], [1, 2], [2, 0]]]}
-            assert len(e0 & e1) == 1
 
 
 # ---------------------------------------------------------------- the sphere at grid 64
@@ -93,8 +40,8 @@ def test_every_case_separates_inside_from_outside_with_outward_winding(case: int
 
 def test_sphere_at_grid_64_is_watertight_outward_and_accurate(cache_dir: Path, device: torch.device) -> None:
     r, res = 0.6, 64
-    model = _dmtet(res, cache_dir, device)
-    model.init_from_sdf(_sphere(r))
+    model = make_dmtet(res, cache_dir, device)
+    model.init_from_sdf(sphere(r))
     mesh = model()
     assert mesh.vertices.device.type == device.type and torch.isfinite(mesh.vertices).all()
     mesh = mesh.to("cpu")
@@ -102,7 +49,7 @@ def test_sphere_at_grid_64_is_watertight_outward_and_accurate(cache_dir: Path, d
     assert (counts == 2).all()  # closed 2-manifold edges
     edges = unique_edges(mesh)
     assert mesh.num_vertices - edges.shape[0] + mesh.num_faces == 2  # Euler: a topological sphere
-    tm = _trimesh(mesh)
+    tm = to_trimesh(mesh)
     assert tm.is_watertight and tm.is_winding_consistent
     # No duplicate and no unused vertices.
     assert len(np.unique(tm.vertices, axis=0)) == mesh.num_vertices
@@ -112,7 +59,7 @@ def test_sphere_at_grid_64_is_watertight_outward_and_accurate(cache_dir: Path, d
     centroid = mesh.face_vertices().detach().mean(1)
     assert ((n * centroid).sum(-1) > 0).all()
     exact = 4 / 3 * math.pi * r**3
-    vol = _signed_volume(mesh)
+    vol = signed_volume(mesh)
     assert vol > 0 and abs(vol / exact - 1) < 0.03
     assert abs(tm.volume / exact - 1) < 0.03
     # Crossings of a linearly interpolated exact SDF lie on chords: within a fraction of a cell.
@@ -125,8 +72,8 @@ def test_sphere_at_grid_64_is_watertight_outward_and_accurate(cache_dir: Path, d
 def test_face_count_grows_with_resolution_squared(cache_dir: Path) -> None:
     faces = {}
     for res in (16, 32):
-        model = _dmtet(res, cache_dir)
-        model.init_from_sdf(_sphere(0.55))
+        model = make_dmtet(res, cache_dir)
+        model.init_from_sdf(sphere(0.55))
         faces[res] = model().num_faces
     assert 3.6 < faces[32] / faces[16] < 4.4
     # The budget helper, fed the area of a coarse extraction, picks a resolution whose mesh lands
@@ -134,8 +81,8 @@ def test_face_count_grows_with_resolution_squared(cache_dir: Path) -> None:
     area = float(surface_area(_detached(model())))
     assert area == pytest.approx(4 * math.pi * 0.55**2, rel=0.02)
     res = suggest_resolution(12_000, surface_area=area)
-    model = _dmtet(res, cache_dir)
-    model.init_from_sdf(_sphere(0.55))
+    model = make_dmtet(res, cache_dir)
+    model.init_from_sdf(sphere(0.55))
     got = model().num_faces
     assert 0.8 * 12_000 < got < 1.08 * 12_000
     assert suggest_resolution(50_000) > suggest_resolution(20_000) >= 8
@@ -147,7 +94,7 @@ def test_face_count_grows_with_resolution_squared(cache_dir: Path) -> None:
 
 
 def test_gradients_match_finite_differences_in_sdf_and_deformation(cache_dir: Path) -> None:
-    model = _dmtet(3, cache_dir, dtype=torch.float64, close_boundary=False)
+    model = make_dmtet(3, cache_dir, dtype=torch.float64, close_boundary=False)
     g = torch.Generator().manual_seed(7)
     base_sdf = (model.grid_vertices.norm(dim=-1) - 0.75 + 0.1 * torch.randn(model.num_vertices, generator=g,
                                                                              dtype=torch.float64))
@@ -171,8 +118,8 @@ def test_gradients_match_finite_differences_in_sdf_and_deformation(cache_dir: Pa
 
 
 def test_gradients_flow_on_device(cache_dir: Path, device: torch.device) -> None:
-    model = _dmtet(12, cache_dir, device)
-    model.init_from_sdf(_sphere(0.5))
+    model = make_dmtet(12, cache_dir, device)
+    model.init_from_sdf(sphere(0.5))
     mesh = model()
     w = torch.randn(mesh.vertices.shape, generator=torch.Generator().manual_seed(0)).to(device)
     (mesh.vertices * w).sum().backward()
@@ -184,7 +131,7 @@ def test_gradients_flow_on_device(cache_dir: Path, device: torch.device) -> None
 
 
 def test_deformation_is_bounded_by_scale_cells(cache_dir: Path) -> None:
-    model = _dmtet(8, cache_dir, deform_scale=0.3)
+    model = make_dmtet(8, cache_dir, deform_scale=0.3)
     with torch.no_grad():
         model.deform.copy_(torch.randn(model.deform.shape, generator=torch.Generator().manual_seed(1)) * 100)
     offset = model.vertex_positions() - model.grid_vertices
@@ -199,7 +146,7 @@ def test_deformation_is_bounded_by_scale_cells(cache_dir: Path) -> None:
 
 
 def test_empty_and_full_sdf_raise_a_clear_error(cache_dir: Path, device: torch.device) -> None:
-    model = _dmtet(6, cache_dir, device)
+    model = make_dmtet(6, cache_dir, device)
     with torch.no_grad():
         model.sdf.fill_(0.3)
     with pytest.raises(EmptySurfaceError, match="everything is outside"):
@@ -214,7 +161,7 @@ def test_empty_and_full_sdf_raise_a_clear_error(cache_dir: Path, device: torch.d
         model()
     assert issubclass(EmptySurfaceError, ValueError)
     # Inside everywhere but one vertex at exactly 0: every triangle collapses onto it.
-    solid = _dmtet(6, cache_dir, device, close_boundary=False)
+    solid = make_dmtet(6, cache_dir, device, close_boundary=False)
     with torch.no_grad():
         solid.sdf.fill_(-0.3)
         solid.sdf[solid.num_vertices // 2] = 0.0
@@ -227,7 +174,7 @@ def test_empty_and_full_sdf_raise_a_clear_error(cache_dir: Path, device: torch.d
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 @pytest.mark.parametrize("where", ["sdf", "deform"])
 def test_non_finite_parameters_raise(bad: float, where: str, cache_dir: Path) -> None:
-    model = _dmtet(6, cache_dir)
+    model = make_dmtet(6, cache_dir)
     with torch.no_grad():
         getattr(model, where).view(-1)[5] = bad
     with pytest.raises(NonFiniteFieldError, match=f"DMTet {where}"):
@@ -235,7 +182,7 @@ def test_non_finite_parameters_raise(bad: float, where: str, cache_dir: Path) ->
 
 
 def test_density_threshold_errors_name_the_threshold(cache_dir: Path) -> None:
-    model = _dmtet(6, cache_dir)
+    model = make_dmtet(6, cache_dir)
     blob = lambda p: 40.0 * torch.exp(-(p * p).sum(-1) / 0.1)  # noqa: E731
     with pytest.raises(EmptySurfaceError, match="threshold 50 is too high"):
         model.init_from_density(blob, threshold=50.0)
@@ -258,85 +205,6 @@ def test_config_validation() -> None:
             DMTetConfig(**kw)
 
 
-# ---------------------------------------------------------------- ties, extremes, the closed boundary
-
-
-def test_plane_through_grid_vertices_welds_to_an_exact_box(cache_dir: Path, device: torch.device) -> None:
-    model = _dmtet(8, cache_dir, device)
-    with pytest.warns(RuntimeWarning, match="boundary"):
-        model.init_from_sdf(lambda p: p[:, 2])  # zero exactly on the z = 0 layer of vertices
-    assert (model.sdf == 0).sum() == 81
-    mesh = model().to("cpu")
-    area = torch.linalg.cross(*(mesh.face_vertices()[:, 1:] - mesh.face_vertices()[:, :1]).unbind(1), dim=-1)
-    assert torch.isfinite(mesh.vertices).all()
-    assert area.norm(dim=-1).min() > 1e-4  # no zero-area triangles after welding
-    _, counts = edge_face_counts(mesh)
-    assert (counts == 2).all()
-    tm = _trimesh(mesh)
-    assert tm.is_winding_consistent
-    # Every vertex next to an inside one is exactly 0, so the inside is exactly the union of the tets
-    # with an inside corner: [-1,1]²×[-1,0] with its box edges chamfered by the closed boundary.
-    inside = (model.effective_sdf() < 0).cpu()[model.tets.cpu()].any(1)
-    p = model.grid_vertices.cpu().double()[model.tets.cpu()[inside]]
-    expected = float(torch.linalg.det(p[:, 1:] - p[:, :1]).sum() / 6)
-    assert 3.5 < expected < 4.0
-    assert _signed_volume(mesh) == pytest.approx(expected, rel=1e-6)
-    assert float(mesh.vertices.detach()[:, 2].max()) == pytest.approx(0.0, abs=1e-6)
-    # Welded vertices are grid vertices: every output vertex coincides with one.
-    assert set(np.round(mesh.vertices.detach().numpy() * 4).ravel().tolist()) <= set(range(-4, 5))
-
-
-def test_sphere_with_exact_zeros_at_vertices(cache_dir: Path) -> None:
-    model = _dmtet(16, cache_dir, dtype=torch.float64)
-    model.init_from_sdf(_sphere(0.75))  # 0.75² = 0.5² + 0.5² + 0.25²: many vertices exactly on it
-    zeros = int((model.sdf == 0).sum())
-    assert zeros >= 24
-    mesh = model()
-    assert torch.isfinite(mesh.vertices).all()
-    fv = mesh.face_vertices().detach()
-    area = torch.linalg.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0], dim=-1).norm(dim=-1)
-    assert area.min() > 1e-8
-    _, counts = edge_face_counts(mesh)
-    assert (counts == 2).all()
-    assert _trimesh(mesh).is_winding_consistent
-    assert abs(_signed_volume(mesh) / (4 / 3 * math.pi * 0.75**3) - 1) < 0.05
-    w = torch.randn(mesh.vertices.shape, dtype=torch.float64)
-    (mesh.vertices * w).sum().backward()
-    assert torch.isfinite(model.sdf.grad).all() and torch.isfinite(model.deform.grad).all()
-
-
-@pytest.mark.parametrize("scale", [1e-30, 1e-12, 1e12, 1e30])
-def test_sdf_scale_does_not_change_the_mesh(scale: float, cache_dir: Path) -> None:
-    model = _dmtet(10, cache_dir)
-    model.init_from_sdf(_sphere(0.55))
-    ref = model()
-    with torch.no_grad():
-        model.sdf.mul_(scale)
-    mesh = model()
-    assert torch.equal(mesh.faces, ref.faces)
-    torch.testing.assert_close(mesh.vertices, ref.vertices, atol=1e-6, rtol=0)
-    mesh.vertices.sum().backward()
-    assert torch.isfinite(model.sdf.grad).all()
-
-
-def test_shape_larger_than_the_box_is_capped_and_closed(cache_dir: Path) -> None:
-    model = _dmtet(10, cache_dir)
-    with pytest.warns(RuntimeWarning, match="reaches the tet grid's boundary"):
-        model.init_from_sdf(_sphere(1.2))
-    mesh = model()
-    assert (mesh.vertices.abs() <= 1.0 + 1e-6).all()
-    _, counts = edge_face_counts(mesh)
-    assert (counts == 2).all()
-    assert _trimesh(mesh).is_watertight
-    # Without closing, the surface runs into the box and stays open.
-    open_model = _dmtet(10, cache_dir, close_boundary=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        open_model.init_from_sdf(_sphere(1.2))
-    _, counts = edge_face_counts(open_model())
-    assert (counts == 1).any()
-
-
 # ---------------------------------------------------------------- initialisation from a density field
 
 
@@ -347,7 +215,7 @@ def test_init_from_gaussian_density_recovers_the_radius(cache_dir: Path, device:
     def density(p: torch.Tensor) -> torch.Tensor:
         return amplitude * torch.exp(-(p * p).sum(-1) / (2 * sigma**2))
 
-    model = _dmtet(32, cache_dir, device)
+    model = make_dmtet(32, cache_dir, device)
     model.init_from_density(density, threshold=threshold, chunk_size=1000)  # several chunks
     cell = model.config.cell_size
     assert model.sdf.abs().max() <= model.config.init_clamp_cells * cell + 1e-6  # bounded, metric-sized
@@ -360,11 +228,11 @@ def test_init_from_gaussian_density_recovers_the_radius(cache_dir: Path, device:
     assert torch.equal(model.sdf < 0, raw_inside)
     raw_mesh = marching_tets(model.grid_vertices, model.tets, threshold - density(model.grid_vertices))
     assert raw_mesh.num_faces == mesh.num_faces
-    assert _trimesh(mesh.to("cpu")).is_watertight
+    assert to_trimesh(mesh.to("cpu")).is_watertight
 
 
 def test_init_from_density_handles_infinite_density(cache_dir: Path) -> None:
-    model = _dmtet(8, cache_dir)
+    model = make_dmtet(8, cache_dir)
     model.init_from_density(lambda p: torch.where(p.norm(dim=-1) < 0.5, float("inf"), 0.0), threshold=25.0)
     mesh = model()
     assert torch.isfinite(mesh.vertices).all() and torch.isfinite(model.sdf).all()
@@ -374,8 +242,8 @@ def test_init_from_density_handles_infinite_density(cache_dir: Path) -> None:
 
 
 def test_sdf_sign_change_loss(cache_dir: Path) -> None:
-    model = _dmtet(6, cache_dir, dtype=torch.float64)
-    model.init_from_sdf(_sphere(0.5))
+    model = make_dmtet(6, cache_dir, dtype=torch.float64)
+    model.init_from_sdf(sphere(0.5))
     loss = model.sdf_regulariser()
     assert loss > 0 and torch.isfinite(loss)
     loss.backward()
@@ -407,9 +275,9 @@ def test_sdf_sign_change_loss(cache_dir: Path) -> None:
 
 
 def test_state_dict_holds_only_the_parameters(cache_dir: Path) -> None:
-    model = _dmtet(4, cache_dir)
+    model = make_dmtet(4, cache_dir)
     assert set(model.state_dict()) == {"sdf", "deform"}
-    other = _dmtet(4, cache_dir)
-    model.init_from_sdf(_sphere(0.3))
+    other = make_dmtet(4, cache_dir)
+    model.init_from_sdf(sphere(0.3))
     other.load_state_dict(model.state_dict())
     assert torch.equal(other().faces, model().faces)

@@ -152,7 +152,7 @@ def test_a_killed_writer_is_cleaned_up_at_once(tmp_path: Path) -> None:
     code = textwrap.dedent(f"""
         import time
         from assets_store.store import Store
-        with Store({str(store_root)!r}).stage_writer("photo.jpg", "nerf_fit") as w:
+        with Store({str(store_root)!r}).stage_writer("photo.jpg", "nerf") as w:
             (w.path / "partial.bin").write_bytes(b"x" * 100)
             print(w.path, flush=True)
             time.sleep(120)

@@ -103,7 +103,7 @@ def test_the_nerf_anneal_follows_the_steps_unless_set() -> None:
 
 
 def test_every_render_setting_reaches_the_nerf_renderer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import ops.stages.nerf as nerf_fit
+    import ops.stages.nerf as nerf_stage
     from assets_store.store import Store
     from ops.engine.pipeline import run_photo
     from tests.pipeline_helpers import PHOTOS, tiny_config
@@ -112,14 +112,14 @@ def test_every_render_setting_reaches_the_nerf_renderer(tmp_path: Path, monkeypa
             "nerf.render.normal_weight_threshold=0.003", "nerf.render.transmittance_threshold=0.002"]
     cfg = tiny_config(*sets, nerf=2)
     seen = []
-    real = nerf_fit.render_volume
+    real = nerf_stage.render_volume
 
     def spy(field, cameras, h, w, config, *args, **kwargs):
         seen.append(config)
         return real(field, cameras, h, w, config, *args, **kwargs)
 
-    monkeypatch.setattr(nerf_fit, "render_volume", spy)
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", "mug", until="nerf_fit")
+    monkeypatch.setattr(nerf_stage, "render_volume", spy)
+    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", "mug", until="nerf")
     assert out.error is None, out.error
     assert seen
     for config in seen:  # every field as configured, except what a render is for (training or eval)

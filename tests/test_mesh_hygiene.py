@@ -13,6 +13,7 @@ import torch
 import trimesh
 from PIL import Image
 
+from morpheus_core.export.uv_bake import BakeConfig
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.mesh_hygiene import (
@@ -22,9 +23,9 @@ from morpheus_core.geometry.mesh_hygiene import (
     topology_report,
 )
 from morpheus_core.render.textured import load_textured
-from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig
-from ops.engine.stage_io import save_module
-from ops.stages.bake import ASSET_GLB, UVBakeConfig, bake_asset
+from morpheus_core.texture import TextureField, TextureFieldConfig
+from ops.engine.artifacts import save_module
+from ops.stages.bake import ASSET_GLB, BakeStageConfig, bake_asset
 from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, save_mesh
 
 FRESH = secrets.randbits(31)
@@ -212,7 +213,7 @@ def test_bake_stage_drops_floaters_and_records_its_decisions(tmp_path: Path, sha
     save_module(dmtet_dir / TEXTURE_FILE, TextureField(tcfg, generator=torch.Generator().manual_seed(0)), tcfg)
     Image.new("RGBA", (32, 32), (200, 100, 50, 255)).save(reference / "rgba_32.png")
 
-    cfg = UVBakeConfig(bake=BakeConfig(texture_size=64), write_obj=False, turntable_views=2, preview_size=32,
+    cfg = BakeStageConfig(map=BakeConfig(texture_size=64), write_obj=False, turntable_views=2, preview_size=32,
                        eval_resolution=32, min_component_share=share)
     result = bake_asset(reference, dmtet_dir, dmtet_dir, tmp_path / "out", cfg, device="cpu")
     m = result.metrics
@@ -226,4 +227,4 @@ def test_bake_stage_drops_floaters_and_records_its_decisions(tmp_path: Path, sha
     assert len(load_textured(tmp_path / "out" / ASSET_GLB).faces) == m["faces"]
     assert any("dropped 1 floating component" in n for n in result.notes) == dropped
     with pytest.raises(ValueError, match="min_component_share"):
-        UVBakeConfig(min_component_share=1.0)
+        BakeStageConfig(min_component_share=1.0)

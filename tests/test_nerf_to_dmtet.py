@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError
+from morpheus_core.geometry.marching_tets import EmptySurfaceError
 from morpheus_core.geometry.nerf import FieldSample
 from morpheus_core.geometry.nerf_to_dmtet import (
     ConversionConfig,
@@ -18,6 +18,7 @@ from morpheus_core.geometry.nerf_to_dmtet import (
     mesh_silhouettes,
     silhouette_iou,
 )
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 
 GRID = 32
 CELL = 2.0 / GRID

@@ -17,7 +17,8 @@ from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, Pri
 from ops.cli import main
 from ops.engine import batch as object_batch
 from ops.engine.loop import ProgressEvent
-from ops.engine.pipeline import run_batch, run_photo
+from ops.engine.pipeline import run_photo
+from ops.engine.pipeline_batch import run_batch
 from ops.stages import dmtet as dmtet_stage
 from orchestration.settings import OrchestrationSettings
 from tests.helpers import PooledPrior, RandomPrior, TinyFinetunedPrior
@@ -25,7 +26,7 @@ from tests.pipeline_helpers import PHOTOS, cli_overrides, manifest, output_hashe
 
 CFG = tiny_config()
 KEYS = ("mug.jpg", "box.jpg", "bottle.jpg")
-OPTIMISING = ("nerf_fit", "dmtet", "texture_refine")
+OPTIMISING = ("nerf", "dmtet", "texture")
 
 
 def _photos(keys: tuple[str, ...] = KEYS) -> list[tuple[Path, str]]:
@@ -36,7 +37,7 @@ def _photos(keys: tuple[str, ...] = KEYS) -> list[tuple[Path, str]]:
 def single(tmp_path_factory: pytest.TempPathFactory) -> Store:
     store = Store(tmp_path_factory.mktemp("single"))
     for photo, key in _photos():
-        out = run_photo(photo, store, CFG, "tiny", key, until="texture_refine")
+        out = run_photo(photo, store, CFG, "tiny", key, until="texture")
         assert out.error is None, out.error
     return store
 
@@ -44,7 +45,7 @@ def single(tmp_path_factory: pytest.TempPathFactory) -> Store:
 @pytest.fixture(scope="module")
 def batched(tmp_path_factory: pytest.TempPathFactory) -> Store:
     store = Store(tmp_path_factory.mktemp("batched"))
-    outcomes = run_batch(_photos(), store, CFG, "tiny", until="texture_refine")
+    outcomes = run_batch(_photos(), store, CFG, "tiny", until="texture")
     assert [o.error for o in outcomes] == [None] * len(KEYS)
     assert all(s.status == "ran" for o in outcomes for s in o.stages)
     return store
@@ -63,7 +64,7 @@ def test_a_batch_gives_the_outputs_of_one_by_one_runs(single: Store, batched: St
             assert manifest(batched, key, stage).metrics["batch_size"] == len(KEYS)
             assert manifest(single, key, stage).metrics["batch_size"] == 1
     # The runs optimised something: photos differ, so identical outputs are not a constant.
-    assert output_hashes(batched, "mug.jpg", "nerf_fit") != output_hashes(batched, "box.jpg", "nerf_fit")
+    assert output_hashes(batched, "mug.jpg", "nerf") != output_hashes(batched, "box.jpg", "nerf")
     # Each photo's run log: its own reference PSNR curve, equal to its single run's; the batch's
     # summed loss terms are labelled as such.
     for key in KEYS:
@@ -137,20 +138,20 @@ def test_a_killed_batch_resumes_when_re_run_with_the_same_photos(single: Store, 
     store = Store(tmp_path / "store")
     _copy_stages(single, store, ("reference",))
     every = CFG.nerf.loop.checkpoint_every
-    killed = run_batch(_photos(), store, CFG, "tiny", until="nerf_fit",
-                       progress=Crash(f"batch of {len(KEYS)}:nerf_fit", every + 1))
+    killed = run_batch(_photos(), store, CFG, "tiny", until="nerf",
+                       progress=Crash(f"batch of {len(KEYS)}:nerf", every + 1))
     assert all("killed at step" in o.error for o in killed)
-    assert all(store.read_manifest(key, "nerf_fit") is None for key in KEYS)
-    saved = store.checkpoint_dir(KEYS[0], "nerf_fit").glob("batch-*/step-*.ckpt")
+    assert all(store.read_manifest(key, "nerf") is None for key in KEYS)
+    saved = store.checkpoint_dir(KEYS[0], "nerf").glob("batch-*/step-*.ckpt")
     assert max(int(p.stem.split("-")[1]) for p in saved) == every  # one checkpoint for the whole batch
 
-    again = run_batch(_photos(), store, CFG, "tiny", until="nerf_fit")
+    again = run_batch(_photos(), store, CFG, "tiny", until="nerf")
     for key, outcome in zip(KEYS, again, strict=True):
         assert outcome.error is None and outcome.stages[-1].status == "resumed"
-        metrics = manifest(store, key, "nerf_fit").metrics
+        metrics = manifest(store, key, "nerf").metrics
         assert metrics["resumed_from_step"] == every and metrics["steps_run"] == CFG.nerf.loop.steps - every
-        assert output_hashes(store, key, "nerf_fit") == output_hashes(batched, key, "nerf_fit"), key
-    assert not list(store.checkpoint_dir(KEYS[0], "nerf_fit").glob("**/*.ckpt"))
+        assert output_hashes(store, key, "nerf") == output_hashes(batched, key, "nerf"), key
+    assert not list(store.checkpoint_dir(KEYS[0], "nerf").glob("**/*.ckpt"))
 
 
 def test_a_photo_without_a_surface_fails_alone_and_the_others_finish(single: Store, tmp_path: Path,
@@ -158,7 +159,7 @@ def test_a_photo_without_a_surface_fails_alone_and_the_others_finish(single: Sto
     """Box's DMTet surface is empty from the start: it sits out every step (BadStep for it only),
     fails when writing its output, and the two others get exactly their one-by-one outputs."""
     store = Store(tmp_path / "store")
-    _copy_stages(single, store, ("reference", "nerf_fit"))
+    _copy_stages(single, store, ("reference", "nerf"))
     real_start, batches = dmtet_stage.start_dmtet, []
 
     def start(*args, **kwargs) -> object_batch.StageJob:  # type: ignore[no-untyped-def]
@@ -198,9 +199,9 @@ def test_cli_batch_runs_groups_and_rejects_a_zero_batch(single: Store, tmp_path:
     assert "[group 1/2] bottle.jpg, box.jpg" in err and "[group 2/2] mug.jpg" in err
     store = Store(out)
     for key in KEYS:
-        assert (store.stage_dir(key, "uv_bake") / "asset.glb").is_file()
-        assert output_hashes(store, key, "texture_refine") == output_hashes(single, key, "texture_refine"), key
-    assert [manifest(store, k, "nerf_fit").metrics["batch_size"] for k in ("bottle.jpg", "box.jpg", "mug.jpg")] \
+        assert (store.stage_dir(key, "bake") / "asset.glb").is_file()
+        assert output_hashes(store, key, "texture") == output_hashes(single, key, "texture"), key
+    assert [manifest(store, k, "nerf").metrics["batch_size"] for k in ("bottle.jpg", "box.jpg", "mug.jpg")] \
         == [2, 2, 1]
 
     assert main(["run", str(PHOTOS), "--out", str(tmp_path / "none"), "--batch", "0"]) == 2

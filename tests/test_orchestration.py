@@ -22,7 +22,7 @@ from PIL import Image
 from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
-from ops.stages.qa import CHECKS, read_report
+from ops.stages.checks import CHECKS, read_report
 from orchestration.assets import ASSET_OF_STAGE, GPU_POOL, STAGE_ASSET_NAMES
 from orchestration.definitions import JOB
 from orchestration.partitions import PHOTOS
@@ -71,8 +71,8 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
         preview = _preview_png(meta["preview"])
         assert preview.width > 16 and preview.height > 16, f"{asset}: empty preview"
         assert Path(meta["stage_dir"].value) == Store(root / "store").stage_dir(KEY, stage)
-    assert "plan" in mats[("dmtet_mesh", KEY)]
-    glb = Path(mats[("uv_asset", KEY)]["glb"].value)
+    assert "plan" in mats[("dmtet", KEY)]
+    glb = Path(mats[("bake", KEY)]["glb"].value)
     loaded = trimesh.load(glb, force="mesh")
     assert len(loaded.faces) > 0 and loaded.visual.uv is not None
 
@@ -88,7 +88,7 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
     assert verdict.description
     rows = [r for r in Catalog(Store(root / "store").catalog_dir).read().to_pylist() if r["run_id"] == result.run_id]
     assert len(rows) == 1 and rows[0]["photo_key"] == KEY and rows[0]["verdict"] == report.verdict
-    assert rows[0]["status"] == "ok" and rows[0]["qa_status"] == "ran" and rows[0]["nerf_fit_device"] == "cpu"
+    assert rows[0]["status"] == "ok" and rows[0]["qa_status"] == "ran" and rows[0]["nerf_device"] == "cpu"
 
 
 def test_rerun_is_all_cache_hits(deployment) -> None:
@@ -154,8 +154,8 @@ def test_definitions_shape(deployment) -> None:
     names = {k.to_user_string() for k in graph.get_all_asset_keys()}
     assert names >= {"photo_files", *STAGE_ASSET_NAMES}
     assert graph.get(dg.AssetKey("reference")).parent_keys == {dg.AssetKey("photo_files")}
-    assert dg.AssetKey("nerf_field") in graph.get(dg.AssetKey("dmtet_mesh")).parent_keys
-    assert graph.get(dg.AssetKey("qa_report")).parent_keys == {dg.AssetKey("uv_asset")}
+    assert dg.AssetKey("nerf") in graph.get(dg.AssetKey("dmtet")).parent_keys
+    assert graph.get(dg.AssetKey("qa")).parent_keys == {dg.AssetKey("bake")}
     for asset in defs.assets:
         if isinstance(asset, dg.AssetsDefinition):
             key = asset.key.to_user_string()
@@ -163,7 +163,7 @@ def test_definitions_shape(deployment) -> None:
             assert asset.code_versions_by_key[asset.key], f"{key} has no code version"
             assert asset.op.retry_policy is not None
             assert asset.backfill_policy is not None and asset.backfill_policy.max_partitions_per_run == 8
-            gpu = key in ("nerf_field", "dmtet_mesh", "refined_texture")
+            gpu = key in ("nerf", "dmtet", "texture")
             assert (asset.op.pool == GPU_POOL) == gpu
             assert ("dagster-k8s/config" in asset.op.tags) == gpu
     assert defs.resolve_job_def(JOB) is not None
@@ -183,18 +183,18 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
     home = tmp_path / "home"
     home.mkdir()
     with dg.instance_for_test(temp_dir=str(home)) as instance:
-        fault = inject_fault(monkeypatch, f"{bad}:nerf_fit", fault_at)
+        fault = inject_fault(monkeypatch, f"{bad}:nerf", fault_at)
         first = run_job(defs, instance, [bad, good])
         assert not first.success
         mats = materializations(first)
         assert ("reference", bad) in mats and ("reference", good) in mats
-        assert ("nerf_field", good) in mats, "the healthy photo's stage must be recorded"
-        assert ("nerf_field", bad) not in mats
+        assert ("nerf", good) in mats, "the healthy photo's stage must be recorded"
+        assert ("nerf", bad) not in mats
         failure = next(e for e in first.all_events if e.event_type_value == "STEP_FAILURE")
         error = failure.event_specific_data.error.to_string()
         assert "1 of 2 photos failed" in error and "injected fault" in error
         store = Store(tmp_path / "store")
-        ckpt_dirs = [p for p in store.checkpoint_dir(bad, "nerf_fit").rglob("*") if p.is_dir()]
+        ckpt_dirs = [p for p in store.checkpoint_dir(bad, "nerf").rglob("*") if p.is_dir()]
         steps = sorted({s for d in ckpt_dirs for s in Checkpoints(d, keep=3).steps()})
         assert steps and max(steps) == fault_at - 1
 
@@ -208,10 +208,10 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
             again = dg.execute_job(dg.reconstructable(_tiny_job), instance=instance, reexecution_options=options,
                                    tags={k: v for k, v in first.dagster_run.tags.items() if "partition_range" in k})
         assert again.success
-        nerf = manifest(store, bad, "nerf_fit")
+        nerf = manifest(store, bad, "nerf")
         assert nerf.metrics["resumed_from_step"] == fault_at - 1
         assert nerf.metrics["steps_run"] == nerf.config["nerf"]["loop"]["steps"] - (fault_at - 1)
-        assert manifest(store, good, "nerf_fit").metrics["resumed_from_step"] is None
+        assert manifest(store, good, "nerf").metrics["resumed_from_step"] is None
         for key in (bad, good):
             assert read_report(store.stage_dir(key, "qa")).verdict in ("pass", "warn", "fail")
         for asset in STAGE_ASSET_NAMES:
@@ -229,14 +229,14 @@ def test_a_gpu_stage_step_optimises_its_photos_together(tmp_path: Path) -> None:
     home.mkdir()
     with dg.instance_for_test(temp_dir=str(home)) as instance:
         assert run_job(defs, instance, keys[:2], assets=["reference"]).success
-        result = run_job(defs, instance, keys, assets=["nerf_field"])
+        result = run_job(defs, instance, keys, assets=["nerf"])
         assert not result.success
         assert not [e for e in result.all_events if e.event_type_value == "STEP_UP_FOR_RETRY"]
         store, mats = Store(tmp_path / "store"), materializations(result)
         for key in keys[:2]:
-            assert manifest(store, key, "nerf_fit").metrics["batch_size"] == 2
-            assert mats[("nerf_field", key)]["metrics"].value["batch_size"] == 2
-        assert ("nerf_field", "box.jpg") not in mats and store.read_manifest("box.jpg", "nerf_fit") is None
+            assert manifest(store, key, "nerf").metrics["batch_size"] == 2
+            assert mats[("nerf", key)]["metrics"].value["batch_size"] == 2
+        assert ("nerf", "box.jpg") not in mats and store.read_manifest("box.jpg", "nerf") is None
         assert {e.partition for e in check_evaluations(result)} == set(keys[:2])
         failure = next(e for e in result.all_events if e.event_type_value == "STEP_FAILURE")
         error = failure.event_specific_data.error.to_string()
@@ -301,10 +301,10 @@ def test_transient_failure_is_retried_and_resumes_from_the_checkpoint(tmp_path: 
         assert result.success
         assert fault.fired == [3]
         retries = [e for e in result.all_events if e.event_type_value == "STEP_UP_FOR_RETRY"]
-        assert [e.step_key for e in retries] == ["dmtet_mesh"]
+        assert [e.step_key for e in retries] == ["dmtet"]
         dmtet = manifest(Store(tmp_path / "store"), KEY, "dmtet")
         assert dmtet.metrics["resumed_from_step"] == 2  # dmtet checkpoints every 2 steps in the tiny config
-        assert materializations(result)[("dmtet_mesh", KEY)]["resumed_from_step"].value == 2
+        assert materializations(result)[("dmtet", KEY)]["resumed_from_step"].value == 2
 
 
 def test_a_removed_photo_fails_at_once_without_retries(tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from PIL import Image
 
 from ops.intake.errors import ImageTooLargeError, InvalidImageError, PreparationError, SegmentationError
 from ops.intake.photo import LoadConfig, load_photo
-from ops.stages.reference import prepare_reference
+from ops.intake.prepare import prepare_reference
 
 
 def _object_photo(seed: int, size: tuple[int, int] = (96, 80)) -> np.ndarray:

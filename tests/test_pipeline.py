@@ -14,11 +14,12 @@ import trimesh
 from safetensors.torch import load_file
 
 from assets_store.store import CATALOG_DIR, Store
-from morpheus_core.priors.proxy import ProxyPrior
+from morpheus_core.priors.proxy.prior import ProxyPrior
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
-from ops.engine.pipeline import STAGES, PhotoOutcome, run_photo
+from ops.engine.pipeline import PhotoOutcome, run_photo
 from ops.engine.priors import PriorsConfig, ProxySuite, build_suite
+from ops.engine.stage_ids import STAGE_IDS
 from tests.pipeline_helpers import DEVICE, PHOTOS, manifest, output_hashes, tiny_config
 
 KEY = "mug.jpg"
@@ -42,24 +43,24 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Store, PhotoOutc
 
 def test_one_photo_end_to_end_gives_a_textured_glb(finished: tuple[Store, PhotoOutcome]) -> None:
     store, outcome = finished
-    assert [s.stage for s in outcome.stages] == list(STAGES)
+    assert [s.stage for s in outcome.stages] == list(STAGE_IDS)
     assert all(s.status == "ran" for s in outcome.stages)
-    glb = store.stage_dir(KEY, "uv_bake") / "asset.glb"
+    glb = store.stage_dir(KEY, "bake") / "asset.glb"
     mesh = trimesh.load(glb, force="mesh")
     assert len(mesh.faces) > 0 and np.isfinite(mesh.vertices).all()
     assert mesh.visual.uv is not None and mesh.visual.uv.shape == (len(mesh.vertices), 2)
     tex = np.asarray(mesh.visual.material.baseColorTexture)
     assert tex.shape[:2] == (256, 256) and tex.std() > 1.0  # a real texture, not a flat fill
-    bake = manifest(store, KEY, "uv_bake").metrics
+    bake = manifest(store, KEY, "bake").metrics
     assert bake["watertight"] in (True, False) and bake["faces"] == len(mesh.faces)
     assert bake["ref_psnr"] > MIN_REF_PSNR, bake
     for name in ("asset.obj", "asset.mtl", "asset.png", "turntable.png", "reference_view.png"):
-        assert (store.stage_dir(KEY, "uv_bake") / name).is_file()
+        assert (store.stage_dir(KEY, "bake") / name).is_file()
 
 
 def test_manifests_record_what_people_need(finished: tuple[Store, PhotoOutcome]) -> None:
     store, _ = finished
-    nerf = manifest(store, KEY, "nerf_fit")
+    nerf = manifest(store, KEY, "nerf")
     assert nerf.prior.startswith("proxy (weight-free)") and "weights are not installed" in nerf.prior
     assert nerf.preset == "draft" and nerf.device.startswith(DEVICE) and nerf.wall_time_s > 0
     assert set(nerf.fingerprint.inputs) == {"reference"} and nerf.code_version.startswith("nerf_fit-")
@@ -68,9 +69,9 @@ def test_manifests_record_what_people_need(finished: tuple[Store, PhotoOutcome])
     assert {"runlog.parquet", "nerf.safetensors", "preview.png"} <= set(nerf.outputs)
     from assets_store.runlog import read_runlog
 
-    log = read_runlog(store.stage_dir(KEY, "nerf_fit") / "runlog.parquet")
+    log = read_runlog(store.stage_dir(KEY, "nerf") / "runlog.parquet")
     assert [r["step"] for r in log][-1] == 150 and all("ref_psnr" in r and "wall_s" in r for r in log)
-    assert not list(store.checkpoint_dir(KEY, "nerf_fit").glob("**/*.ckpt"))  # cleared after commit
+    assert not list(store.checkpoint_dir(KEY, "nerf").glob("**/*.ckpt"))  # cleared after commit
     # The conversion's decision and its silhouette check, before and after optimising.
     dmtet = manifest(store, KEY, "dmtet")
     assert dmtet.metrics["iso_level"] in draft().dmtet.conversion.levels
@@ -86,10 +87,10 @@ def test_second_run_is_cached_and_one_change_reruns_only_what_follows(
     store = Store(tmp_path / "store")
     shutil.copytree(src.photo_dir(KEY), store.photo_dir(KEY))
     again = run_photo(PHOTOS / "mug.jpg", store, draft(), "draft", KEY)
-    assert [s.status for s in again.stages] == ["cached"] * len(STAGES) and again.wall_s == 0.0
+    assert [s.status for s in again.stages] == ["cached"] * len(STAGE_IDS) and again.wall_s == 0.0
     changed = run_photo(PHOTOS / "mug.jpg", store, draft("texture.lr_grid=0.02"), "draft", KEY)
     assert [s.status for s in changed.stages] == ["cached", "cached", "cached", "ran", "ran", "ran"]
-    assert output_hashes(store, KEY, "texture_refine") != output_hashes(src, KEY, "texture_refine")
+    assert output_hashes(store, KEY, "texture") != output_hashes(src, KEY, "texture")
     back = run_photo(PHOTOS / "mug.jpg", store, draft("dmtet.laplacian_weight=20"), "draft", KEY)
     assert [s.status for s in back.stages] == ["cached", "cached", "ran", "ran", "ran", "ran"]
 
@@ -120,14 +121,14 @@ def test_a_prior_returning_nan_is_survived_counted_and_kept_out_of_outputs(tmp_p
         suite.priors = {role: NaNOnSomeSteps(prior) for role, prior in suite.priors.items()}
         return suite
 
-    out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, suites={"nerf_fit": flaky, "dmtet": flaky})
+    out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, suites={"nerf": flaky, "dmtet": flaky})
     assert out.error is None, out.error
-    for stage in ("nerf_fit", "dmtet"):
+    for stage in ("nerf", "dmtet"):
         m = manifest(store, KEY, stage).metrics
         assert m["guard_nonfinite_prior"] >= 1 and m["guard_skipped_steps"] >= 1, m
-    state = load_file(store.stage_dir(KEY, "nerf_fit") / "nerf.safetensors")
+    state = load_file(store.stage_dir(KEY, "nerf") / "nerf.safetensors")
     assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
-    mesh = trimesh.load(store.stage_dir(KEY, "uv_bake") / "asset.glb", force="mesh")
+    mesh = trimesh.load(store.stage_dir(KEY, "bake") / "asset.glb", force="mesh")
     assert np.isfinite(mesh.vertices).all()
 
 
@@ -156,10 +157,10 @@ def test_real_priors_run_the_same_stage_code(tmp_path: Path, models_root: Path) 
     real = [f"priors.models_root={models_root}", "priors.kind=real", "priors.image2d_resolution=64"]
     cfg = tiny_config(*real, nerf=2, dmtet=1, texture=2)
     store = Store(tmp_path / "store")
-    out = run_photo(PHOTOS / "box.jpg", store, cfg, "tiny", "box.jpg", until="texture_refine")
+    out = run_photo(PHOTOS / "box.jpg", store, cfg, "tiny", "box.jpg", until="texture")
     assert out.error is None, out.error
-    nerf = manifest(store, "box.jpg", "nerf_fit")
-    tex = manifest(store, "box.jpg", "texture_refine")
+    nerf = manifest(store, "box.jpg", "nerf")
+    tex = manifest(store, "box.jpg", "texture")
     assert nerf.prior == "3d: Zero123" and "proxy" not in nerf.prior
     assert tex.prior == "3d: Zero123 + 2d: SD1.5 + canny ControlNet + IP-Adapter (VSD LoRA)"
     assert tex.metrics["steps_run"] == 2 and tex.metrics["guard_skipped_steps"] == 0
@@ -167,27 +168,27 @@ def test_real_priors_run_the_same_stage_code(tmp_path: Path, models_root: Path) 
 
 def test_real_priors_requested_without_weights_fail_naming_the_folder(tmp_path: Path) -> None:
     cfg = tiny_config(f"priors.models_root={tmp_path / 'empty'}", "priors.kind=real")
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", KEY, until="nerf_fit")
+    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", KEY, until="nerf")
     assert out.status == "failed" and "ModelMissingError" in out.error and "zero123" in out.error
-    assert Store(tmp_path / "store").read_manifest(KEY, "nerf_fit") is None  # nothing half-written
+    assert Store(tmp_path / "store").read_manifest(KEY, "nerf") is None  # nothing half-written
 
 
 def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoOutcome], tmp_path: Path) -> None:
     """--init-mesh: DMTet from the asset's winding number, texture warm-started from its bake."""
     src, _ = finished
-    asset = src.stage_dir(KEY, "uv_bake") / "asset.glb"
+    asset = src.stage_dir(KEY, "bake") / "asset.glb"
     store = Store(tmp_path / "store")
     out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.max_grid=32", dmtet=0), "tiny", KEY,
                     init_mesh=asset)
     assert out.error is None, out.error
-    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture_refine", "uv_bake", "qa"]
+    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture", "bake", "qa"]
     dm = manifest(store, KEY, "dmtet")
     assert set(dm.fingerprint.inputs) == {"reference", "init_mesh"} and "asset.glb" in dm.notes[0]
     assert dm.metrics["colour_fit_mse"] < 0.01  # the warm start reproduces the asset's texture
     # The warm-started asset already shows the photo from the reference view before any step (measured
     # 15.3 dB: the asset re-meshed on a 32-grid and rendered at 40 px; an untrained field gives ~8 dB).
-    assert manifest(store, KEY, "texture_refine").metrics["ref_psnr_before"] > 13.0
-    assert store.read_manifest(KEY, "nerf_fit") is None
+    assert manifest(store, KEY, "texture").metrics["ref_psnr_before"] > 13.0
+    assert store.read_manifest(KEY, "nerf") is None
 
 
 def test_init_mesh_errors_name_the_file(tmp_path: Path) -> None:
@@ -209,7 +210,7 @@ def test_normal_smoothness_is_zero_for_flat_normals_and_enters_the_nerf_loss(tmp
     assert float(normal_smoothness(noisy, opaque)) > 0.0 and float(normal_smoothness(noisy, opaque * 0)) == 0.0
     store = Store(tmp_path / "store")
     out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("nerf.normal_smooth_weight=0.05", nerf=3), "tiny", KEY,
-                    until="nerf_fit")
+                    until="nerf")
     assert out.error is None, out.error
-    log = read_runlog(store.stage_dir(KEY, "nerf_fit") / "runlog.parquet")
+    log = read_runlog(store.stage_dir(KEY, "nerf") / "runlog.parquet")
     assert all(r["normal_smooth"] is not None and r["normal_smooth"] > 0 for r in log)

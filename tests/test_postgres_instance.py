@@ -80,7 +80,7 @@ def test_concurrent_backfill_kill_and_reexecute_on_postgres(tmp_path: Path) -> N
 
 def _kill_and_reexecute(env: dict[str, str], store: Path, runs: dict[str, subprocess.Popen[str]]) -> None:
     """Kill mug's run mid-NeRF, let the others finish, re-execute mug's run from failure."""
-    ckpts = store / "mug.jpg" / ".checkpoints" / "nerf_fit"
+    ckpts = store / "mug.jpg" / ".checkpoints" / "nerf"
     deadline = time.monotonic() + 300
     while not list(ckpts.glob("**/*.ckpt")):
         if runs["mug.jpg"].poll() is not None or time.monotonic() > deadline:
@@ -138,7 +138,7 @@ def _read_back(env: dict[str, str]) -> dict:
             for rec in instance.fetch_materializations(key, limit=1000).records:
                 m = rec.asset_materialization
                 mats[f"{key.to_user_string()}|{m.partition}"] += 1
-                if key.to_user_string() == "nerf_field" and m.partition == "mug.jpg":
+                if key.to_user_string() == "nerf" and m.partition == "mug.jpg":
                     resumed = m.metadata["resumed_from_step"].value
         for rec in instance.get_event_records(EventRecordsFilter(DagsterEventType.ASSET_CHECK_EVALUATION),
                                               limit=10000):

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import ops.stages.reference as reference_module
+import ops.intake.prepare as reference_module
 from ops.cli import main
 from ops.intake.errors import PreparationError
+from ops.intake.prepare import PrepareConfig, prepare_reference, read_reference
 from ops.intake.segment import Segmenter
-from ops.stages.reference import PrepareConfig, prepare_reference, read_reference
 from tests.photo_factory import PhotoSpec, product_photo
 
 

@@ -15,12 +15,12 @@ from PIL import Image
 from morpheus_core.mask_confidence import ConfidenceParams, Ramp, mask_confidence
 from morpheus_core.mask_edges import edge_cue
 from morpheus_core.mask_ops import border_ring, classical_segment, fit_background, iou, to_lab
-from morpheus_core.proxy_shape import InflationConfig, from_reference_folder
+from morpheus_core.priors.proxy.shape import InflationConfig, from_reference_folder
 from ops.cli import main
 from ops.intake.errors import LowConfidenceError
+from ops.intake.prepare import prepare_reference, read_reference
 from ops.intake.segment import SegmentConfig, Segmenter
 from ops.stages.plan import plan_reference
-from ops.stages.reference import prepare_reference, read_reference
 from tests.photo_factory import SHAPES, multipart_photo, white_on_white_photo
 
 SKIMAGE = pytest.importorskip("skimage.data")
@@ -152,13 +152,14 @@ def test_a_low_confidence_photo_stops_before_the_gpu_stages(tmp_path: Path) -> N
     from tests.pipeline_helpers import tiny_config
 
     store = Store(tmp_path / "store")
-    out = run_photo(REAL / "coffee.png", store, tiny_config("prepare.segment.use_rembg=false"), "tiny", "coffee.png")
+    cfg = tiny_config("reference.prepare.segment.use_rembg=false")
+    out = run_photo(REAL / "coffee.png", store, cfg, "tiny", "coffee.png")
     assert out.status == "failed" and out.error.startswith("reference: LowConfidenceError")
     assert "coffee.png" in out.error
     assert [s.stage for s in out.stages] == ["reference"]
-    assert all(store.read_manifest("coffee.png", s) is None for s in ("reference", "nerf_fit"))
+    assert all(store.read_manifest("coffee.png", s) is None for s in ("reference", "nerf"))
     # The threshold is a pipeline setting too.
-    lenient = tiny_config("prepare.segment.use_rembg=false", "prepare.segment.min_confidence=0.0")
+    lenient = tiny_config("reference.prepare.segment.use_rembg=false", "reference.prepare.segment.min_confidence=0.0")
     out = run_photo(REAL / "coffee.png", store, lenient, "tiny", "coffee.png", until="reference")
     ref = store.read_manifest("coffee.png", "reference")
     assert out.error is None and ref is not None and ref.metrics["mask_confidence"] < 0.15

@@ -8,7 +8,7 @@ from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.frequency import BandMask, filter_residual
 from morpheus_core.metrics.image import mean_colour_error
 from morpheus_core.priors import Prior
-from morpheus_core.priors.proxy import ColourDeviation, LowPass, ProxyPrior, constant_target
+from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target
 
 
 def _image(seed: int, size: int = 24) -> torch.Tensor:

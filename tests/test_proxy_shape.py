@@ -19,10 +19,10 @@ import torch
 from PIL import Image
 
 from morpheus_core.cameras import orbit, reference_camera, sample_orbit
-from morpheus_core.geometry.dmtet import DMTet, DMTetConfig
 from morpheus_core.geometry.mesh import Mesh, edge_face_counts
-from morpheus_core.proxy_shape import EmptySilhouetteError, InflatedProxy, InflationConfig, from_reference_folder
-from ops.stages.reference import prepare_reference
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
+from morpheus_core.priors.proxy.shape import EmptySilhouetteError, InflatedProxy, InflationConfig, from_reference_folder
+from ops.intake.prepare import prepare_reference
 from tests.photo_factory import PhotoSpec, product_photo
 
 HALF_SPAN = 2.5 * math.tan(math.radians(20.0))  # half the reference view's width on z = 0

@@ -19,16 +19,18 @@ import trimesh
 from PIL import Image
 
 from morpheus_core.cameras import reference_camera
+from morpheus_core.export.gltf import export_glb
+from morpheus_core.export.uv_bake import BakeConfig, bake_uv
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.part_silhouettes import compare_part_silhouettes, count_parts, mask_components
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
-from morpheus_core.texture import BakeConfig, bake_uv, export_glb
-from ops.engine.stage_io import save_module
+from ops.engine.artifacts import save_module
+from ops.stages.checks import read_report
 from ops.stages.nerf import NERF_FILE
-from ops.stages.qa import QAConfig, read_report, run_qa
+from ops.stages.qa import QAConfig, run_qa
 
 FRESH = secrets.randbits(31)
 SEEDS = [0, FRESH]
@@ -191,7 +193,7 @@ def _photo_of(glb: Path, reference_dir: Path) -> Path:
 def _qa(tmp: Path, nerf: list | None, glb: list, photo: list) -> tuple[dict, dict]:
     nerf_dir = None
     if nerf is not None:
-        nerf_dir = tmp / "nerf_fit"
+        nerf_dir = tmp / "nerf"
         nerf_dir.mkdir()
         _nerf_of_spheres(nerf_dir, nerf)
     asset = _glb_of_spheres(tmp / "asset.glb", glb)

@@ -161,7 +161,7 @@ def test_tiny_benchmark_end_to_end(tmp_path: Path) -> None:
     points = timing[0]["points"]
     assert [p["stage"] for p in points] == list(POINTS)
     assert all(b["wall_s"] >= a["wall_s"] for a, b in itertools.pairwise(points))
-    assert "| tiny | uv_bake |" in error_time_markdown(timing)
+    assert "| tiny | bake |" in error_time_markdown(timing)
     assert plot_error_time(timing, tmp_path / "plot.png", "t").stat().st_size > 1000
 
     entries = (Entry("defaults"), Entry("lambda_c=1", tuple(f"{s}.guidance.lambda_c=1.0"

@@ -9,15 +9,8 @@ import torch
 import trimesh
 
 from morpheus_core.cameras import orbit
-from morpheus_core.render.raster import (
-    RasterConfig,
-    RasterInputError,
-    antialias,
-    edge_topology,
-    interpolate,
-    rasterize,
-    silhouette_crossings,
-)
+from morpheus_core.render.antialias import antialias, silhouette_crossings
+from morpheus_core.render.raster import RasterConfig, RasterInputError, edge_topology, interpolate, rasterize
 
 NEAR_W = RasterConfig().near_w
 MIN_AREA = RasterConfig().min_area_px

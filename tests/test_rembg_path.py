@@ -13,9 +13,9 @@ from onnx import TensorProto, helper
 from PIL import Image
 
 from morpheus_core.mask_ops import iou
+from ops.intake.prepare import prepare_reference
 from ops.intake.rembg_local import INPUT_SIZE, U2NetSession
 from ops.intake.segment import SegmentConfig, Segmenter
-from ops.stages.reference import prepare_reference
 from tests.photo_factory import PhotoSpec, product_photo
 
 

@@ -20,9 +20,9 @@ from tests.pipeline_helpers import PHOTOS, ROOT, cli_overrides, output_hashes, t
 KEY = "mug.jpg"
 # More steps than the other pipeline tests, so that each stage spends long enough to be hit.
 CFG = tiny_config(nerf=16, dmtet=12, texture=12)
-UPSTREAM = {"nerf_fit": ("reference",), "dmtet": ("reference", "nerf_fit"),
-            "texture_refine": ("reference", "nerf_fit", "dmtet"),
-            "uv_bake": ("reference", "nerf_fit", "dmtet", "texture_refine")}
+UPSTREAM = {"nerf": ("reference",), "dmtet": ("reference", "nerf"),
+            "texture": ("reference", "nerf", "dmtet"),
+            "bake": ("reference", "nerf", "dmtet", "texture")}
 
 
 def _command(out: Path) -> list[str]:
@@ -43,12 +43,12 @@ def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> Store:
 
 def _reached(store: Store, stage: str, step: int) -> bool:
     """The stage has checkpointed ``step`` or later, or (bake, no steps) opened its staging folder."""
-    if stage == "uv_bake":
-        return store.staging_root(KEY).exists() and any(store.staging_root(KEY).glob("uv_bake.*"))
+    if stage == "bake":
+        return store.staging_root(KEY).exists() and any(store.staging_root(KEY).glob("bake.*"))
     return any(int(p.stem.split("-")[1]) >= step for p in store.checkpoint_dir(KEY, stage).glob("**/step-*.ckpt"))
 
 
-@pytest.mark.parametrize("stage", ["nerf_fit", "dmtet", "texture_refine", "uv_bake"])
+@pytest.mark.parametrize("stage", ["nerf", "dmtet", "texture", "bake"])
 def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, uninterrupted: Store,
                                                                 tmp_path: Path) -> None:
     store = Store(tmp_path / "store")
@@ -57,7 +57,7 @@ def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, unint
     rng = random.Random(f"{stage}-{os.getpid()}")
     proc = subprocess.Popen(_command(store.root), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # A random checkpoint (first to third of four), then a random moment up to a few steps later.
-    loop = {"nerf_fit": CFG.nerf.loop, "dmtet": CFG.dmtet.loop, "texture_refine": CFG.texture.loop}.get(stage)
+    loop = {"nerf": CFG.nerf.loop, "dmtet": CFG.dmtet.loop, "texture": CFG.texture.loop}.get(stage)
     step = rng.randint(1, 3) * loop.checkpoint_every if loop else 0
     deadline = time.monotonic() + 300
     while not _reached(store, stage, step) and proc.poll() is None and time.monotonic() < deadline:
@@ -67,12 +67,12 @@ def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, unint
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert killed, f"the run finished before it could be killed in {stage}; make the stage longer"
-    assert store.read_manifest(KEY, stage) is None or stage == "uv_bake"
+    assert store.read_manifest(KEY, stage) is None or stage == "bake"
 
     subprocess.run(_command(store.root), env=_env(), check=True, capture_output=True, timeout=600)
-    for s in ("nerf_fit", "dmtet", "texture_refine", "uv_bake"):
+    for s in ("nerf", "dmtet", "texture", "bake"):
         assert output_hashes(store, KEY, s) == output_hashes(uninterrupted, KEY, s), s
-    if stage != "uv_bake":
+    if stage != "bake":
         resumed = store.read_manifest(KEY, stage).metrics["resumed_from_step"]
         assert resumed is None or resumed > 0
     staging = store.staging_root(KEY)

@@ -27,7 +27,7 @@ from morpheus_core.cameras import reference_camera
 from morpheus_core.geometry.mesh import edge_face_counts
 from morpheus_core.imaging import bbox, object_high_frequency_ratio
 from morpheus_core.render.textured import TexturedMesh, render_textured
-from ops.stages.reference import prepare_reference
+from ops.intake.prepare import prepare_reference
 
 SIZE = 256
 HF_CUTOFF = 0.25

@@ -15,21 +15,18 @@ import trimesh
 from PIL import Image
 
 from morpheus_core.atomic_io import atomic_write
-from morpheus_core.geometry.hashgrid import HashGridConfig
-from morpheus_core.geometry.mesh import Mesh
-from morpheus_core.texture import (
+from morpheus_core.export.gltf import encode_glb, export_glb, export_obj
+from morpheus_core.export.uv_bake import (
     BakeConfig,
     EmptyMeshError,
-    TextureField,
-    TextureFieldConfig,
     TooManyFacesError,
     bake_uv,
     cluster_decimate,
     dilate,
-    encode_glb,
-    export_glb,
-    export_obj,
 )
+from morpheus_core.geometry.hashgrid import HashGridConfig
+from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.texture import TextureField, TextureFieldConfig
 
 TOLERANCE = 4.0 / 255.0
 
@@ -173,7 +170,7 @@ def test_failed_export_leaves_old_file_and_no_temporary(baked, tmp_path: Path, m
     def broken(_baked) -> bytes:
         raise RuntimeError("encoder crashed")
 
-    monkeypatch.setattr("morpheus_core.texture.encode_glb", broken)
+    monkeypatch.setattr("morpheus_core.export.gltf.encode_glb", broken)
     with pytest.raises(RuntimeError, match="encoder crashed"):
         export_glb(baked, target)
     assert target.read_bytes() == good

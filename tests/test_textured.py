@@ -14,6 +14,8 @@ import trimesh
 from PIL import Image
 
 from morpheus_core.cameras import sample_orbit
+from morpheus_core.export.gltf import export_glb, export_obj
+from morpheus_core.export.uv_bake import BakeConfig, bake_uv
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_mesh
 from morpheus_core.render.textured import (
@@ -25,7 +27,6 @@ from morpheus_core.render.textured import (
     sample_surface,
     sample_texture,
 )
-from morpheus_core.texture import BakeConfig, bake_uv, export_glb, export_obj
 from tests.test_texture import blob, colour_field
 
 # Measured ≈61 dB (8-bit 256² texture, bilinear). Shifting the lookup by half a texel drops it to

@@ -14,7 +14,6 @@ import torch
 
 from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE, LPIPSWeightsError, convert_lpips_checkpoint, main
 from morpheus_core.metrics.weighted import (
-    MANIQA_FILE,
     METRIC_NAMES,
     SKIP_MISSING,
     WeightedMetrics,
@@ -22,6 +21,7 @@ from morpheus_core.metrics.weighted import (
     compute_weighted_metrics,
     weighted_metric_status,
 )
+from morpheus_core.metrics.weighted_models import MANIQA_FILE
 from tests.helpers import photo
 from tests.tiny_models import tiny_lpips, write_tiny_maniqa, write_weighted_metric_models
 

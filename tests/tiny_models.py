@@ -9,7 +9,7 @@ import torch
 from safetensors.torch import save_file
 
 from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE
-from morpheus_core.metrics.weighted import MANIQA_FILE
+from morpheus_core.metrics.weighted_models import MANIQA_FILE
 from morpheus_core.priors.architectures import Image2DParts, Zero123Parts, image2d_parts, zero123_parts
 from morpheus_core.priors.zero123 import PROJECTION_LAYOUTS
 

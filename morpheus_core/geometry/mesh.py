@@ -62,7 +62,7 @@ class Mesh:
 
 
 # --- Connectivity and geometry regularisers (DMTet stage: Laplacian smoothness, normal consistency).
-# The SDF sign-change regulariser acts on the tet grid, not on a mesh: it lives in dmtet.py.
+# The SDF sign-change regulariser acts on the tet grid, not on a mesh: it lives in tet_surface.py.
 # Topology changes every step as the SDF moves, so adjacency is recomputed per call (sorts, O(F log F)).
 
 

@@ -6,7 +6,7 @@ faces are connected when they share an edge — a pair of surfaces touching at o
 components, since unwrapping and floater removal treat them as separate pieces.
 
 A mesh without faces is not an error here: every function returns a well-defined empty result
-(no components, zero counts, genus None) and the caller decides; ``texture.bake_uv`` refuses it.
+(no components, zero counts, genus None) and the caller decides; ``export.uv_bake.bake_uv`` refuses it.
 """
 
 from __future__ import annotations

@@ -23,8 +23,9 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras, orbit
-from morpheus_core.geometry.dmtet import DMTet, EmptySurfaceError
+from morpheus_core.geometry.marching_tets import EmptySurfaceError
 from morpheus_core.geometry.nerf import RadianceField
+from morpheus_core.geometry.tet_surface import DMTet
 from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_mesh
 from morpheus_core.render.volume import OccupancyGrid, VolumeRenderConfig, render_volume
 

@@ -1,6 +1,6 @@
 """UV-textured meshes: load a GLB / OBJ asset, sample its texture, render it, sample its surface.
 
-The counterpart of ``morpheus_core.texture``'s bake and export: what we write (or any single-texture
+The counterpart of ``morpheus_core.export``'s bake and export: what we write (or any single-texture
 asset) can be read back and rendered with the same rasteriser, so exported assets are evaluated with
 the same cameras, conventions and losses as the optimised mesh and colour field.
 
@@ -32,11 +32,11 @@ from PIL import Image
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
+from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_shaded
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.raster import Fragments
-from morpheus_core.texture import BakedTexture
 
 _VALID = "a GLB/glTF or OBJ file with one textured triangle mesh (per-vertex UVs and a base colour texture image)"
 

@@ -12,36 +12,40 @@ Everything is overridable by dotted path (``ops.config.tree.apply_overrides``), 
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
+from morpheus_core.export.uv_bake import BakeConfig
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
-from morpheus_core.texture import BakeConfig, TextureFieldConfig
+from morpheus_core.texture import TextureFieldConfig
 from ops.config.tree import apply_overrides
 from ops.engine.loop import LoopConfig
 from ops.engine.priors import PriorsConfig
-from ops.stages.bake import UVBakeConfig
-from ops.stages.dmtet import DMTetFitConfig
-from ops.stages.nerf import NerfFitConfig, small_field
-from ops.stages.plan import PlanConfig
+from ops.stages.bake import BakeStageConfig
+from ops.stages.dmtet import DMTetStageConfig
+from ops.stages.nerf import NerfStageConfig, small_field
 from ops.stages.qa import QAConfig
-from ops.stages.reference import PrepareConfig
-from ops.stages.texture import TextureRefineConfig
+from ops.stages.reference import ReferenceStageConfig
+from ops.stages.texture import TextureStageConfig
+
+log = logging.getLogger("morpheus3d")
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     seed: int = 0
+    """Seed of the fitting stages' random numbers (field init, novel cameras, ray jitter, diffusion noise)."""
     device: str = "auto"
-    prepare: PrepareConfig = field(default_factory=PrepareConfig)
-    plan: PlanConfig = field(default_factory=PlanConfig)
+    """Torch device of every stage: ``auto`` (CUDA when available, else CPU), ``cpu``, ``cuda``, ``cuda:1``…"""
     priors: PriorsConfig = field(default_factory=PriorsConfig)
-    nerf: NerfFitConfig = field(default_factory=NerfFitConfig)
-    dmtet: DMTetFitConfig = field(default_factory=DMTetFitConfig)
-    texture: TextureRefineConfig = field(default_factory=TextureRefineConfig)
-    bake: UVBakeConfig = field(default_factory=UVBakeConfig)
+    reference: ReferenceStageConfig = field(default_factory=ReferenceStageConfig)
+    nerf: NerfStageConfig = field(default_factory=NerfStageConfig)
+    dmtet: DMTetStageConfig = field(default_factory=DMTetStageConfig)
+    texture: TextureStageConfig = field(default_factory=TextureStageConfig)
+    bake: BakeStageConfig = field(default_factory=BakeStageConfig)
     qa: QAConfig = field(default_factory=QAConfig)
 
 
@@ -51,10 +55,10 @@ def paper() -> PipelineConfig:
 
 def standard() -> PipelineConfig:
     return PipelineConfig(
-        nerf=NerfFitConfig(loop=LoopConfig(3000, checkpoint_every=250, log_every=25), resolution=96,
+        nerf=NerfStageConfig(loop=LoopConfig(3000, checkpoint_every=250, log_every=25), resolution=96,
                            render=VolumeRenderConfig(n_samples=128, with_normals=False)),
-        dmtet=DMTetFitConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
-        texture=TextureRefineConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
+        dmtet=DMTetStageConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
+        texture=TextureStageConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
         qa=QAConfig(eval_resolution=512, turntable_views=36),
     )
 
@@ -65,17 +69,17 @@ def draft() -> PipelineConfig:
     steps = 150
     return PipelineConfig(
         priors=PriorsConfig(proxy_grid=40),
-        nerf=NerfFitConfig(loop=LoopConfig(steps, checkpoint_every=25, log_every=10), resolution=48,
+        nerf=NerfStageConfig(loop=LoopConfig(steps, checkpoint_every=25, log_every=10), resolution=48,
                            model=small_field(), render=VolumeRenderConfig(n_samples=48, with_normals=False),
                            occupancy=OccupancyGridConfig(resolution=32, update_every=8),
                            preview_size=128,
                            normal_smooth_weight=0.0),  # normals cost 6 extra density queries per sample
-        dmtet=DMTetFitConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,
-                             texture=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13, preview_size=128,
-                             conversion=ConversionConfig(samples=48)),
-        texture=TextureRefineConfig(loop=LoopConfig(60, checkpoint_every=20, log_every=10), resolution=96,
+        dmtet=DMTetStageConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,
+                             texture_field=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13,
+                             preview_size=128, conversion=ConversionConfig(samples=48)),
+        texture=TextureStageConfig(loop=LoopConfig(60, checkpoint_every=20, log_every=10), resolution=96,
                                     preview_size=128),
-        bake=UVBakeConfig(bake=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
+        bake=BakeStageConfig(map=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
                           eval_resolution=128),
         # The part check renders the NeRF with the samples per ray it was fitted with.
         qa=QAConfig(eval_resolution=128, turntable_views=24, turntable_resolution=128, part_samples=48),
@@ -85,11 +89,26 @@ def draft() -> PipelineConfig:
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {"paper": paper, "standard": standard, "draft": draft}
 
 
+# Keys renamed when every stage got one id (old prefix → new prefix); an old key still works, with a warning.
+RENAMED_KEYS = {"prepare.": "reference.prepare.", "plan.": "reference.plan.",
+                "dmtet.texture.": "dmtet.texture_field.", "bake.bake.": "bake.map."}
+
+
+def current_key(assignment: str) -> str:
+    """``assignment`` (``key=value``) with a key from before the renaming spelled the current way."""
+    for old, new in RENAMED_KEYS.items():
+        if assignment.startswith(old):
+            renamed = new + assignment[len(old):]
+            log.warning("--set %s: the key is now %s", assignment.partition("=")[0], renamed.partition("=")[0])
+            return renamed
+    return assignment
+
+
 def preset(name: str, overrides: Iterable[str] = ()) -> PipelineConfig:
     """The named preset with ``key=value`` overrides applied (``ConfigError`` names bad keys)."""
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    return apply_overrides(PRESETS[name](), overrides)
+    return apply_overrides(PRESETS[name](), [current_key(o) for o in overrides])
 
 
 def with_steps(cfg: PipelineConfig, nerf: int, dmtet: int, texture: int) -> PipelineConfig:

@@ -8,8 +8,13 @@ work starts, naming the valid keys.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import inspect
+import itertools
 import json
+import textwrap
 import types
 import typing
 from collections.abc import Iterable
@@ -146,9 +151,35 @@ def apply_overrides(config: T, assignments: Iterable[str]) -> T:
 
 def flat_keys(config: Any, prefix: str = "") -> list[str]:
     """Every overridable dotted path (for help and error messages)."""
-    keys = []
+    return [key for key, _, _ in describe_keys(config, prefix)]
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's one-line doc: the string literal right after the field in the class body (an
+    attribute docstring, which IDEs show too), whitespace folded."""
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    body = ast.parse(source).body[0].body  # type: ignore[attr-defined]
+    docs = {}
+    for node, after in itertools.pairwise(body):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+            docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def describe_keys(config: Any, prefix: str = "") -> list[tuple[str, Any, str]]:
+    """Every overridable dotted path with its current value and its field's doc (``--list-keys``)."""
+    out: list[tuple[str, Any, str]] = []
+    docs = field_docs(type(config))
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         path = f"{prefix}{f.name}"
-        keys += flat_keys(value, path + ".") if dataclasses.is_dataclass(value) else [path]
-    return keys
+        if dataclasses.is_dataclass(value):
+            out += describe_keys(value, path + ".")
+        else:
+            out.append((path, value, docs.get(f.name, "")))
+    return out

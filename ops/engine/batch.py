@@ -18,8 +18,7 @@ over the per-object tasks of one stage:
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +26,10 @@ import torch
 from torch import Tensor
 
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
-from morpheus_core.priors.proxy import CurrentRenderCounterpart, ProxyPrior
+from morpheus_core.priors.proxy.prior import CurrentRenderCounterpart, ProxyPrior
 from ops.engine.guided_task import GuidedTask, RenderedStep, step_output
-from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn, StepOutput, run_loop
-from ops.engine.stage_io import StageResult
+from ops.engine.loop import BadStep, LoopResult, ProgressFn, StepOutput, run_loop
+from ops.engine.stage_job import StageJob, StageResult
 
 
 def _concat(values: list[Any]) -> Any:
@@ -136,29 +135,6 @@ class BatchTask:
 
     def evaluate(self) -> dict[str, float]:
         return {f"{i}/{k}": v for i, t in enumerate(self.tasks) for k, v in t.evaluate().items()}
-
-
-@dataclass
-class StageJob:
-    """One object's stage, set up and ready to optimise: alone (``run``) or in a batch (``run_jobs``).
-
-    ``finish`` writes the stage's outputs from the loop's result; ``close`` releases the object's
-    prior state (adapters, cached references) whatever happened."""
-
-    stage: str
-    task: GuidedTask
-    generator: torch.Generator
-    loop: LoopConfig
-    finish: Callable[[LoopResult], StageResult]
-    close: Callable[[], None]
-
-    def run(self, checkpoint_dir: Path | None = None, progress: ProgressFn | None = None) -> StageResult:
-        try:
-            result = self.finish(run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress))
-            result.metrics["batch_size"] = 1  # every optimising manifest says how many photos shared its steps
-            return result
-        finally:
-            self.close()
 
 
 _PER_STEP = ("step", "wall_s", "ok")

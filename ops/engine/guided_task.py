@@ -25,7 +25,7 @@ from morpheus_core.render.output import RenderOutput
 from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.loop import StepOutput
 from ops.engine.priors import PriorSuite
-from ops.engine.stage_io import ReferenceTarget, reference_psnr
+from ops.engine.target import ReferenceTarget, reference_psnr
 
 
 def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:

@@ -5,7 +5,7 @@ to a prior, its VSD counterpart and this step's condition, so the stage code is 
 weight-free proxy and the real models.
 
 - ``proxy`` (weight-free): both roles are pulled towards renders of the photo's inflated
-  silhouette (``morpheus_core.proxy_shape``); VSD's counterpart is the current render (see
+  silhouette (``morpheus_core.priors.proxy.shape``); VSD's counterpart is the current render (see
   ``CurrentRenderCounterpart``). Used whenever the weights are missing, and said so loudly.
 - ``real``: Zero123 for ``3d``; SD1.5 + canny ControlNet + IP-Adapter for ``2d``; one LoRA per
   object for every VSD role. Loaded once per process and device (``ModelCache``).
@@ -20,19 +20,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
 import torch
-from PIL import Image
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras
-from morpheus_core.priors.proxy import Corruption, CurrentRenderCounterpart, ProxyPrior
+from morpheus_core.priors.proxy.prior import Corruption, CurrentRenderCounterpart, ProxyPrior
+from morpheus_core.priors.proxy.shape import InflatedProxy, InflationConfig
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
-from morpheus_core.proxy_shape import InflatedProxy, InflationConfig
+from ops.engine.target import read_rgba
 
 log = logging.getLogger("morpheus3d")
 
@@ -42,20 +41,26 @@ WEIGHT_FREE = "proxy (weight-free)"
 
 @dataclass(frozen=True)
 class PriorsConfig:
-    """``kind``: ``auto`` uses the real priors when every weight folder is complete, else the
-    proxy. ``models_root``: the weights folder (default ``$MORPHEUS_MODELS``)."""
+    """Which diffusion priors guide the fitting stages, where their weights live and how they run."""
 
     kind: PriorKind = "auto"
+    """``real`` (Zero123, SD1.5; fails without weights), ``proxy`` (weight-free), ``auto``: real if all weights present."""
     models_root: str | None = None
+    """Folder holding the prior weights; None: ``$MORPHEUS_MODELS``, else ``~/.cache/morpheus3d/models``."""
     dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
-    # auto: frozen forwards replayed from CUDA graphs on CUDA (they are launch-bound: 68 → 20 ms
-    # per Zero123 SDS step on an H200), eager elsewhere.
+    """Precision of the frozen prior networks; ``auto``: float16 on CUDA (as the paper), float32 elsewhere."""
     accel: Literal["auto", "eager", "cudagraph", "compile"] = "auto"
+    """Frozen forwards: auto = CUDA graphs on CUDA (launch-bound: 68 → 20 ms per Zero123 SDS step, H200), else eager."""
     image2d_resolution: int = 512
+    """Side (px) renders are resized to for the 2D prior (SD1.5 + ControlNet); 512 is SD1.5's native size."""
     lora_rank: int = 4
+    """Rank of the per-object LoRA that VSD trains on each prior as its counterpart ε_φ."""
     lora_lr: float = 1e-4
+    """Adam learning rate of the VSD LoRA (ProlificDreamer and the paper: 1e-4)."""
     proxy_grid: int = 48
+    """DMTet grid resolution (cells per side, 4–1024) that meshes the weight-free proxy's inflated silhouette."""
     proxy_thickness: float = 1.0
+    """Proxy depth relative to a round profile: 1.0 inflates a disk silhouette to a sphere, 0.5 to a half-deep lens."""
 
     def __post_init__(self) -> None:
         if self.kind not in ("auto", "proxy", "real"):
@@ -232,20 +237,6 @@ class RealSuite(PriorSuite):
             loras.remove(self.object_id)
         for model in self.models.values():
             model.forget(self.object_id)
-
-
-def read_rgba(reference_dir: Path, size: int) -> Tensor:
-    """The prepared reference's RGBA at ``size`` (4×S×S in [0, 1]); resized from the largest file."""
-    path = Path(reference_dir) / f"rgba_{size}.png"
-    if not path.is_file():
-        candidates = sorted(Path(reference_dir).glob("rgba_*.png"), key=lambda p: int(p.stem.split("_")[1]))
-        if not candidates:
-            raise FileNotFoundError(f"{reference_dir}: no rgba_<size>.png; run `morpheus3d prepare` first")
-        path = candidates[-1]
-    img = Image.open(path).convert("RGBA")
-    if img.size != (size, size):
-        img = img.resize((size, size), Image.Resampling.LANCZOS)
-    return torch.from_numpy(np.asarray(img, dtype=np.float32) / 255.0).permute(2, 0, 1).contiguous()
 
 
 def build_suite(cfg: PriorsConfig, device: torch.device, reference_dir: Path, object_id: str,

@@ -17,9 +17,9 @@ from typing import TextIO
 from assets_store.keys import assign_keys
 from ops.intake.errors import PreparationError
 from ops.intake.photo import EXTENSIONS, file_sha256
+from ops.intake.prepare import PrepareConfig, prepare_reference, read_reference
 from ops.intake.segment import Segmenter
 from ops.stages.plan import PlanConfig, plan_reference, read_plan
-from ops.stages.reference import PrepareConfig, prepare_reference, read_reference
 
 
 @dataclass(frozen=True)

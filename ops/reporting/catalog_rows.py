@@ -16,10 +16,12 @@ from typing import Any
 from assets_store.catalog import Catalog
 from assets_store.manifest import Manifest
 from assets_store.store import Store
-from ops.engine.pipeline import STAGES, PhotoOutcome
-from ops.engine.stage_io import RUNLOG_FILE
+from ops.engine.artifacts import RUNLOG_FILE
+from ops.engine.pipeline import PhotoOutcome
+from ops.engine.stage_ids import STAGE_IDS
 from ops.stages.bake import ASSET_GLB
-from ops.stages.qa import QA_FILE, QA_TURNTABLE_FILE, read_report
+from ops.stages.checks import QA_FILE, read_report
+from ops.stages.qa import QA_TURNTABLE_FILE
 
 
 def _number(value: Any) -> Any:
@@ -35,7 +37,7 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
     """The row for ``key`` as the store holds it now. ``status_by_stage``: what this run did per
     stage (ran / resumed / cached / skipped / failed); ``failure``: why the run failed."""
     manifests: dict[str, Manifest] = {}
-    for stage in STAGES:
+    for stage in STAGE_IDS:
         m = store.read_manifest(key, stage)
         if m is not None:
             manifests[stage] = m
@@ -52,7 +54,7 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
     row.update({"plan_refine": plan.get("refine"), "plan_grid": plan.get("grid"),
                 "plan_export_faces": plan.get("export_faces")})
     statuses = status_by_stage or {}
-    for stage in STAGES:
+    for stage in STAGE_IDS:
         m = manifests.get(stage)
         row[f"{stage}_wall_s"] = float(m.wall_time_s) if m else None
         row[f"{stage}_device"] = m.device if m else None
@@ -75,8 +77,8 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
         row["preview_path"] = str(qa_dir / QA_TURNTABLE_FILE)
     else:
         row["verdict"] = None
-    if "uv_bake" in manifests:
-        row["glb_path"] = str(store.stage_dir(key, "uv_bake") / ASSET_GLB)
+    if "bake" in manifests:
+        row["glb_path"] = str(store.stage_dir(key, "bake") / ASSET_GLB)
     return row
 
 

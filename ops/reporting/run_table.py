@@ -11,8 +11,8 @@ def format_run_table(outcomes: list[PhotoOutcome], store: Store) -> str:
     rows = [("PHOTO", "KEY", "OUTCOME", "STAGES", "TIME", "REF PSNR", "RESULT")]
     for o in outcomes:
         stages = " ".join(f"{s.stage}={s.status}" for s in o.stages)
-        psnr = o.metric("uv_bake", "ref_psnr")
-        result = o.error or str(store.stage_dir(o.key, "uv_bake") / ASSET_GLB)
+        psnr = o.metric("bake", "ref_psnr")
+        result = o.error or str(store.stage_dir(o.key, "bake") / ASSET_GLB)
         rows.append((o.photo.name, o.key, o.status, stages, f"{o.wall_s:.0f}s",
                      "-" if psnr is None else f"{psnr:.1f} dB", result))
     widths = [max(len(r[c]) for r in rows) for c in range(6)]

@@ -18,27 +18,34 @@ from pathlib import Path
 import torch
 
 from morpheus_core.cameras import turntable
+from morpheus_core.devices import pick_device
+from morpheus_core.export.gltf import export_glb, export_obj
+from morpheus_core.export.uv_bake import BakeConfig, bake_uv
 from morpheus_core.geometry.mesh import edge_face_counts
 from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
-from morpheus_core.texture import BakeConfig, TextureField, TextureFieldConfig, bake_uv, export_glb, export_obj
-from ops.engine.stage_io import ReferenceTarget, StageResult, load_module, pick_device, reference_psnr, save_strip
+from morpheus_core.texture import TextureField, TextureFieldConfig
+from ops.engine.artifacts import load_module
+from ops.engine.previews import save_strip
+from ops.engine.stage import Stage, StageContext, StageWork
+from ops.engine.stage_job import StageResult
+from ops.engine.target import ReferenceTarget, reference_psnr
 from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, load_mesh
 
 ASSET_GLB = "asset.glb"
 ASSET_OBJ = "asset.obj"
 TURNTABLE_FILE = "turntable.png"
 REFERENCE_VIEW_FILE = "reference_view.png"
-CODE_VERSION = "uv_bake-2"  # 2: drops floaters before unwrapping, records topology
+CODE_VERSION = "uv_bake-2"  # 2: drops floaters, records topology (kept as existing stores hold it)
 
 
 @dataclass(frozen=True)
-class UVBakeConfig:
-    """``max_faces``: None takes the plan's decimation target (else ``bake.max_faces``).
+class BakeStageConfig:
+    """``max_faces``: None takes the plan's decimation target (else ``bake.map.max_faces``).
     ``min_component_share``: connected components with less than this share of the total surface
     area are dropped before unwrapping (the largest one always stays); 0 keeps everything."""
 
-    bake: BakeConfig = field(default_factory=BakeConfig)
+    map: BakeConfig = field(default_factory=BakeConfig)
     max_faces: int | None = None
     write_obj: bool = True
     turntable_views: int = 8
@@ -51,7 +58,7 @@ class UVBakeConfig:
             raise ValueError(f"bake.min_component_share must lie in [0, 1), got {self.min_component_share}")
 
 
-def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir: Path, cfg: UVBakeConfig,
+def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir: Path, cfg: BakeStageConfig,
                planned_max_faces: int | None = None, device: str = "auto") -> StageResult:
     """Drop floaters, unwrap + bake + export; metrics: faces, topology of the cleaned mesh (components
     before / after, floaters dropped and their area share, Euler number, genus, non-manifold and
@@ -61,8 +68,8 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
     mesh, hygiene = drop_floaters(source, cfg.min_component_share)
     topology = topology_report(mesh)
     texture, _, _ = load_module(Path(texture_dir) / TEXTURE_FILE, TextureField, TextureFieldConfig, dev)
-    limit = cfg.max_faces or planned_max_faces or cfg.bake.max_faces
-    bake_cfg = BakeConfig(**{**vars(cfg.bake), "max_faces": limit})
+    limit = cfg.max_faces or planned_max_faces or cfg.map.max_faces
+    bake_cfg = BakeConfig(**{**vars(cfg.map), "max_faces": limit})
     notes = []
     if hygiene["floaters_dropped"]:
         notes.append(f"dropped {hygiene['floaters_dropped']} floating component(s) below "
@@ -95,3 +102,22 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
         **{k: topology[k] for k in ("euler_number", "genus", "non_manifold_edges", "boundary_edges", "holes")},
     }
     return StageResult(metrics, "none (bake)", str(dev), notes)
+
+
+def _build(ctx: StageContext) -> StageWork:
+    cfg = ctx.cfg
+    plan = ctx.plan
+    faces = plan.export.value if plan is not None else None
+
+    def body(out: Path, _ckpt: Path | None) -> StageResult:
+        return bake_asset(ctx.dir("reference"), ctx.dir("dmtet"), ctx.dir("texture"), out, cfg.bake, faces,
+                          cfg.device)
+
+    return StageWork({"bake": cfg.bake, "planned_faces": faces}, body)
+
+
+STAGE = Stage(
+    "bake", CODE_VERSION, reads=("reference", "dmtet", "texture"),
+    writes=(ASSET_GLB, ASSET_OBJ, "asset.mtl", "asset.png", TURNTABLE_FILE, REFERENCE_VIEW_FILE),
+    preview=TURNTABLE_FILE, gpu=False, build=_build,
+    description="UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews.")

@@ -21,7 +21,10 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write
-from morpheus_core.geometry.dmtet import DMTet, DMTetConfig, EmptySurfaceError, NonFiniteFieldError
+from assets_store.hashing import file_sha256
+from morpheus_core.devices import pick_device
+from morpheus_core.export.uv_bake import cluster_decimate
+from morpheus_core.geometry.marching_tets import EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
 from morpheus_core.geometry.nerf_to_dmtet import (
     Conversion,
@@ -31,27 +34,21 @@ from morpheus_core.geometry.nerf_to_dmtet import (
     mesh_silhouettes,
     silhouette_iou,
 )
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.geometry.winding import winding_number
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
-from morpheus_core.texture import TextureField, TextureFieldConfig, cluster_decimate
-from ops.engine.batch import StageJob
+from morpheus_core.texture import TextureField, TextureFieldConfig
+from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
 from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
-from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn
+from ops.engine.loop import BadStep, LoopConfig, LoopResult
+from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
-from ops.engine.stage_io import (
-    ReferenceTarget,
-    StageResult,
-    loop_metrics,
-    novel_cameras,
-    pick_device,
-    require_finite_output,
-    save_module,
-    save_stage_preview,
-    write_log,
-)
+from ops.engine.stage import Stage, StageContext, StageWork, optimising
+from ops.engine.stage_job import StageJob, StageResult, loop_metrics
+from ops.engine.target import ReferenceTarget, novel_cameras
 from ops.stages.colour_fit import fit_colour_field, jittered_surface_points
 from ops.stages.nerf import load_nerf
 
@@ -62,7 +59,7 @@ CODE_VERSION = "dmtet-2"  # 2: loss balance, silhouette-chosen conversion, NeRF 
 
 
 @dataclass(frozen=True)
-class DMTetFitConfig:
+class DMTetStageConfig:
     """``grid``: the tet grid (None: the plan's choice, capped at ``max_grid``)."""
 
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
@@ -72,7 +69,7 @@ class DMTetFitConfig:
     max_grid: int = 128
     conversion: ConversionConfig = field(default_factory=ConversionConfig)
     deform_scale: float = 0.5
-    texture: TextureFieldConfig = field(default_factory=TextureFieldConfig)
+    texture_field: TextureFieldConfig = field(default_factory=TextureFieldConfig)
     guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
     lr_sdf: float = 1e-3
     lr_deform: float = 1e-2
@@ -97,13 +94,13 @@ class DMTetFitConfig:
             raise ValueError("resolution must be ≥ 8, n_views ≥ 1 and max_grid ≥ 4")
 
 
-def choose_grid(cfg: DMTetFitConfig, planned: int | None) -> int:
+def choose_grid(cfg: DMTetStageConfig, planned: int | None) -> int:
     grid = cfg.grid if cfg.grid is not None else (planned or cfg.max_grid)
     return max(8, min(grid, cfg.max_grid))
 
 
 class DMTetTask(GuidedTask):
-    def __init__(self, cfg: DMTetFitConfig, target: ReferenceTarget, suite: PriorSuite, dmtet: DMTet,
+    def __init__(self, cfg: DMTetStageConfig, target: ReferenceTarget, suite: PriorSuite, dmtet: DMTet,
                  texture: TextureField, device: torch.device, teacher: Silhouettes | None = None) -> None:
         self.cfg, self.dmtet, self.texture = cfg, dmtet, texture
         self.teacher = teacher if cfg.nerf_silhouette_weight > 0 else None
@@ -160,7 +157,7 @@ def _no_colour(points: torch.Tensor) -> torch.Tensor:
     return torch.zeros_like(points)
 
 
-def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_dir: Path, cfg: DMTetFitConfig,
+def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_dir: Path, cfg: DMTetStageConfig,
                    device: torch.device, generator: torch.Generator) -> tuple[float, Conversion]:
     """SDF from the NeRF at the iso-level its silhouettes choose (``nerf_to_dmtet``), texture field
     fitted to its albedo; returns the fit MSE and the conversion (level, silhouette IoUs)."""
@@ -173,7 +170,7 @@ def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_dir: Path, cfg: DMT
     return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator), conversion
 
 
-def init_from_asset(dmtet: DMTet, texture: TextureField, asset: Path, cfg: DMTetFitConfig,
+def init_from_asset(dmtet: DMTet, texture: TextureField, asset: Path, cfg: DMTetStageConfig,
                     device: torch.device, generator: torch.Generator) -> float:
     """SDF sign from the asset's winding number (inside ≥ ½), texture fitted to its baked colours."""
     textured = load_textured(asset).to(device)
@@ -208,7 +205,7 @@ def load_mesh(path: Path, device: torch.device) -> Mesh:
     return Mesh(data["vertices"].to(device), data["faces"].to(device))
 
 
-def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
+def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetStageConfig, priors: PriorsConfig, object_id: str,
                 nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
                 device: str = "auto", seed: int = 0, suite: PriorSuite | None = None) -> StageJob:
     """Stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``, set up to run
@@ -220,7 +217,7 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
     torch.manual_seed(seed + 1)
     grid = choose_grid(cfg, planned_grid)
     dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale), device=dev)
-    texture = TextureField(cfg.texture, generator=generator).to(dev)
+    texture = TextureField(cfg.texture_field, generator=generator).to(dev)
     if init_mesh is not None:
         fit_mse = init_from_asset(dmtet, texture, Path(init_mesh), cfg, dev, generator)
         notes = [f"initialised from {Path(init_mesh).name} (winding number) instead of a NeRF"]
@@ -244,7 +241,7 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
         mesh = task.mesh()
         require_finite_output("dmtet", {"vertices": mesh.vertices, **dict(texture.state_dict())})
         save_mesh(out_dir / MESH_FILE, mesh)
-        save_module(out_dir / TEXTURE_FILE, texture, cfg.texture)
+        save_module(out_dir / TEXTURE_FILE, texture, cfg.texture_field)
         save_module(out_dir / DMTET_FILE, dmtet, DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale))
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
@@ -258,10 +255,24 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors:
     return StageJob("dmtet", task, generator, cfg.loop, finish, suite.close)
 
 
-def fit_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetFitConfig, priors: PriorsConfig, object_id: str,
-              nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
-              device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-              progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``."""
-    return start_dmtet(reference_dir, out_dir, cfg, priors, object_id, nerf_dir, init_mesh, planned_grid, device,
-                       seed, suite).run(checkpoint_dir, progress)
+def _build(ctx: StageContext) -> StageWork:
+    cfg = ctx.cfg
+    plan = ctx.plan
+    grid = plan.dmtet_grid.value if plan is not None else None
+    config = {"dmtet": cfg.dmtet, "priors": cfg.priors, "prior_kind": ctx.prior_kind(cfg.dmtet.guidance.roles),
+              "seed": cfg.seed, "planned_grid": grid}
+    inputs = {} if ctx.init_mesh is None else {"init_mesh": file_sha256(ctx.init_mesh)}
+
+    def start(out: Path) -> StageJob:
+        nerf_dir = None if ctx.init_mesh is not None else ctx.dir("nerf")
+        return start_dmtet(ctx.dir("reference"), out, cfg.dmtet, cfg.priors, ctx.key, nerf_dir, ctx.init_mesh, grid,
+                           cfg.device, cfg.seed, ctx.suite("dmtet"))
+
+    return optimising(config, start, ctx, inputs)
+
+
+STAGE = Stage(
+    "dmtet", CODE_VERSION, reads=("reference", "nerf"),
+    writes=(MESH_FILE, TEXTURE_FILE, DMTET_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE, gpu=True,
+    build=_build,
+    description="Stage 1b: DMTet surface initialised from the NeRF density, mesh and texture field refined.")

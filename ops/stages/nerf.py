@@ -16,34 +16,27 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import pick_device
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
-from ops.engine.batch import StageJob
+from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
-from ops.engine.loop import LoopConfig, LoopResult, ProgressFn
+from ops.engine.loop import LoopConfig, LoopResult
+from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
-from ops.engine.stage_io import (
-    ReferenceTarget,
-    StageResult,
-    load_module,
-    loop_metrics,
-    novel_cameras,
-    pick_device,
-    require_finite_output,
-    save_module,
-    save_stage_preview,
-    write_log,
-)
+from ops.engine.stage import Stage, StageContext, StageWork, optimising
+from ops.engine.stage_job import StageJob, StageResult, loop_metrics
+from ops.engine.target import ReferenceTarget, novel_cameras
 
 NERF_FILE = "nerf.safetensors"
-CODE_VERSION = "nerf_fit-2"  # 2: the official loss balance
+CODE_VERSION = "nerf_fit-2"  # 2: the official loss balance (a version string, kept as existing stores hold it)
 
 
 @dataclass(frozen=True)
-class NerfFitConfig:
+class NerfStageConfig:
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=10_000, checkpoint_every=500, log_every=50))
     resolution: int = 128
     n_views: int = 1
@@ -74,7 +67,7 @@ def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
 
 
 class NerfTask(GuidedTask):
-    def __init__(self, cfg: NerfFitConfig, target: ReferenceTarget, suite: PriorSuite, device: torch.device,
+    def __init__(self, cfg: NerfStageConfig, target: ReferenceTarget, suite: PriorSuite, device: torch.device,
                  generator: torch.Generator) -> None:
         self.cfg = cfg
         self.field = NerfField(cfg.model, generator=generator).to(device)
@@ -118,7 +111,7 @@ class NerfTask(GuidedTask):
         return render_volume(self.field, cameras, r, r, self.eval_render, 1.0, occ)
 
 
-def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
+def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfStageConfig, priors: PriorsConfig, object_id: str,
                device: str = "auto", seed: int = 0, suite: PriorSuite | None = None) -> StageJob:
     """Stage 1a for a prepared reference folder, set up to run (alone or in a batch); writes into
     ``out_dir`` when it finishes."""
@@ -135,7 +128,7 @@ def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: P
 
     def finish(result: LoopResult) -> StageResult:
         task.field.update_step(cfg.loop.steps)
-        require_finite_output("nerf_fit", dict(task.field.state_dict()))
+        require_finite_output("nerf", dict(task.field.state_dict()))
         save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.density})
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
@@ -143,14 +136,8 @@ def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: P
                                           "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
         return StageResult(metrics, suite.description, str(dev))
 
-    return StageJob("nerf_fit", task, generator, cfg.loop, finish, suite.close)
+    return StageJob("nerf", task, generator, cfg.loop, finish, suite.close)
 
-
-def fit_nerf(reference_dir: Path, out_dir: Path, cfg: NerfFitConfig, priors: PriorsConfig, object_id: str,
-             device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-             progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 1a for a prepared reference folder; writes into ``out_dir``."""
-    return start_nerf(reference_dir, out_dir, cfg, priors, object_id, device, seed, suite).run(checkpoint_dir, progress)
 
 
 def load_nerf(nerf_dir: Path, device: torch.device) -> tuple[NerfField, OccupancyGrid | None]:
@@ -172,3 +159,21 @@ def small_field(levels: int = 8, log2_table: int = 15, hidden: int = 32) -> Nerf
     grid = HashGridConfig(n_levels=levels, log2_table_size=log2_table, per_level_scale=1.6,
                           start_levels=max(1, levels // 2), start_step=0, update_steps=25)
     return NerfConfig(grid=grid, hidden=hidden)
+
+
+def _build(ctx: StageContext) -> StageWork:
+    cfg = ctx.cfg
+    config = {"nerf": cfg.nerf, "priors": cfg.priors, "prior_kind": ctx.prior_kind(cfg.nerf.guidance.roles),
+              "seed": cfg.seed}
+
+    def start(out: Path) -> StageJob:
+        return start_nerf(ctx.dir("reference"), out, cfg.nerf, cfg.priors, ctx.key, cfg.device, cfg.seed,
+                          ctx.suite("nerf"))
+
+    return optimising(config, start, ctx)
+
+
+STAGE = Stage(
+    "nerf", CODE_VERSION, reads=("reference",), writes=(NERF_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE,
+    gpu=True, build=_build, replaced_by_init_mesh=True,
+    description="Stage 1a: hash-grid NeRF fitted to the reference under the 3D prior (SDS, t annealed 0.98 → 0.5).")

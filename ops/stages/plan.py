@@ -14,7 +14,7 @@ Rules (calibration in ``benchmarks/results/prepare_calibration.md``):
 - DMTet grid: the largest step of ``grid_step`` in [min_grid, max_grid] that (a) does not resolve
   finer than the photo shows — at least ``source_px_per_cell`` source pixels per cell across the
   object — and (b) keeps the extracted surface under ``extract_face_limit``. The face count comes
-  from DMTet's own estimate (``morpheus_core.geometry.dmtet.estimate_faces``, ≈ 9 faces per cell²
+  from DMTet's own estimate (``morpheus_core.geometry.tet_surface.estimate_faces``, ≈ 9 faces per cell²
   of surface), with the surface taken as ``surface_per_silhouette`` × the silhouette's area: Cauchy's
   formula gives 4 × the mean projected area for a convex body. Larger objects in the source photo
   get finer grids; bulky silhouettes are capped by the face limit.
@@ -33,9 +33,9 @@ import numpy as np
 from PIL import Image
 
 from assets_store.atomic import atomic_write_text
-from morpheus_core.geometry.dmtet import estimate_faces, suggest_resolution
+from morpheus_core.geometry.tet_surface import estimate_faces, suggest_resolution
 from morpheus_core.imaging import object_high_frequency_ratio, resize
-from ops.stages.reference import ReferenceInfo, read_reference
+from ops.intake.prepare import ReferenceInfo, read_reference
 
 PLAN_FILE = "plan.json"
 SCHEMA = 1

@@ -5,7 +5,7 @@ look without failing it. Thresholds come from ``QAConfig`` (``--set qa.min_ref_p
 checks of the producing stages are pure functions of their manifest metrics, so the Dagster
 assets and the QA report agree by construction; the ``qa`` stage re-loads the written GLB and
 measures it on its own (``morpheus_core.metrics.image``: reference-view PSNR / SSIM inside and outside
-the mask, silhouette IoU, high-frequency ratio and colour deviation over a turntable, mesh health,
+the mask, silhouette IoU, high-frequency ratio; ``.colour_deviation`` over a turntable; ``.mesh_health``;
 its parts against the photo's mask and the NeRF's silhouettes (``ops.stages.qa_parts``);
 ``morpheus_core.metrics.weighted``: LPIPS, CLIP similarity, CLIP-IQA, MANIQA when their weights
 are installed, else recorded as skipped) rather than trusting the numbers the bake reported.
@@ -19,8 +19,7 @@ from __future__ import annotations
 
 import io
 import json
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -31,26 +30,24 @@ from PIL import Image
 
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
 from morpheus_core.cameras import turntable
-from morpheus_core.metrics.image import (
-    colour_deviation,
-    hf_ratio,
-    mask_iou,
-    masked_psnr,
-    masked_ssim,
-    mesh_health,
-    ssim,
-)
+from morpheus_core.devices import pick_device
+from morpheus_core.metrics.colour_deviation import colour_deviation
+from morpheus_core.metrics.image import hf_ratio, mask_iou, masked_psnr, masked_ssim, ssim
+from morpheus_core.metrics.mesh_health import mesh_health
 from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weighted_metrics
 from morpheus_core.part_silhouettes import count_parts
 from morpheus_core.render.textured import load_textured, render_textured
-from ops.engine.stage_io import ReferenceTarget, StageResult, pick_device, reference_psnr, save_strip, to_uint8
+from ops.engine.previews import save_strip, to_uint8
+from ops.engine.stage import Stage, StageContext, StageWork
+from ops.engine.stage_job import StageResult
+from ops.engine.target import ReferenceTarget, reference_psnr
+from ops.stages.bake import ASSET_GLB
+from ops.stages.checks import CHECKS, ERROR, QA_FILE, WARN, QACheck, QAReport, check, spec_of, stage_checks, verdict
 from ops.stages.qa_parts import compare_with_nerf
 
-QA_FILE = "qa.json"
 QA_TURNTABLE_FILE = "turntable.png"
 QA_TURNTABLE_GIF = "turntable.gif"
 CODE_VERSION = "qa-3"  # 3: part_count and parts_kept
-ERROR, WARN = "error", "warn"
 
 
 @dataclass(frozen=True)
@@ -112,121 +109,6 @@ class QAConfig:
                 raise ValueError(f"qa.{name} must lie in [0, 1], got {getattr(self, name)}")
 
 
-@dataclass(frozen=True)
-class QACheck:
-    """One check's outcome: ``value`` against ``threshold``; ``message`` says it for people."""
-
-    name: str
-    passed: bool
-    severity: str
-    value: Any
-    threshold: Any
-    message: str
-
-
-@dataclass(frozen=True)
-class CheckSpec:
-    name: str
-    severity: str
-    description: str
-
-
-# The checks each stage's output gets, by stage name; the Dagster assets declare exactly these.
-CHECKS: dict[str, tuple[CheckSpec, ...]] = {
-    "reference": (CheckSpec("object_size", WARN, "the object covers at least qa.min_area_fraction of the photo"),),
-    "nerf_fit": (CheckSpec("stable_optimisation", WARN, "at most qa.max_guard_events NaN/Inf guard events"),),
-    "dmtet": (CheckSpec("mesh_nonempty", ERROR, "the extracted mesh has faces"),
-              CheckSpec("stable_optimisation", WARN, "at most qa.max_guard_events NaN/Inf guard events")),
-    "texture_refine": (CheckSpec("stable_optimisation", WARN, "at most qa.max_guard_events NaN/Inf guard events"),),
-    "uv_bake": (CheckSpec("reference_psnr", ERROR, "the GLB's reference view reaches qa.min_ref_psnr dB"),
-                CheckSpec("uv_coverage", WARN, "the UV atlas covers at least qa.min_uv_coverage of the texture")),
-    "qa": (CheckSpec("asset_finite", ERROR, "every vertex, UV and texel of the GLB is finite"),
-           CheckSpec("mask_iou", ERROR, "the GLB's reference silhouette matches the photo's mask (IoU)"),
-           CheckSpec("watertight", WARN, "the mesh is closed (an error when qa.require_watertight)"),
-           CheckSpec("degenerate_faces", WARN, "at most qa.max_degenerate_fraction of the faces have ~zero area"),
-           CheckSpec("colour_deviation", WARN, "novel views keep the photo's colours (a*b* histogram distance "
-                                                "at most qa.max_colour_deviation)"),
-           CheckSpec("hf_ratio", WARN, "novel views keep at least qa.min_hf_ratio of the photo's high-frequency "
-                                        "detail"),
-           CheckSpec("part_count", WARN, "the GLB has no more connected components than the photo's mask has "
-                                         "silhouette parts (pieces of at least qa.min_part_share of its area)"),
-           CheckSpec("parts_kept", ERROR, "from qa.part_views novel views, no region the NeRF shows larger than "
-                                          "qa.max_missing_part_share of its silhouette is missing from the GLB, "
-                                          "and the silhouette IoU stays at least qa.min_part_iou"),
-           CheckSpec("verdict", ERROR, "no error-severity check failed in any stage")),
-}
-
-
-def _check(spec: CheckSpec, passed: bool, value: Any, threshold: Any, message: str,
-           severity: str | None = None) -> QACheck:
-    if isinstance(value, float) and not math.isfinite(value):
-        passed = False
-    return QACheck(spec.name, bool(passed), severity or spec.severity, value, threshold, message)
-
-
-def _spec(stage: str, name: str) -> CheckSpec:
-    return next(s for s in CHECKS[stage] if s.name == name)
-
-
-def _guard_events(metrics: dict[str, Any]) -> int:
-    return sum(int(v) for k, v in metrics.items() if k.startswith("guard_") and k != "guard_skipped_steps")
-
-
-def stage_checks(stage: str, metrics: dict[str, Any], cfg: QAConfig) -> list[QACheck]:
-    """The checks of a producing stage (not ``qa``), from its manifest metrics."""
-    out: list[QACheck] = []
-    for spec in CHECKS.get(stage, ()):
-        if spec.name == "object_size":
-            area = float(metrics.get("area_fraction", 0.0))
-            out.append(_check(spec, area >= cfg.min_area_fraction, area, cfg.min_area_fraction,
-                              f"object covers {area:.1%} of the photo (minimum {cfg.min_area_fraction:.1%})"))
-        elif spec.name == "stable_optimisation":
-            events = _guard_events(metrics)
-            out.append(_check(spec, events <= cfg.max_guard_events, events, cfg.max_guard_events,
-                              f"{events} NaN/Inf guard events (allowed {cfg.max_guard_events})"))
-        elif spec.name == "mesh_nonempty":
-            faces = int(metrics.get("faces", 0))
-            out.append(_check(spec, faces > 0, faces, 1, f"{faces} faces"))
-        elif spec.name == "reference_psnr":
-            value = float(metrics.get("ref_psnr", float("nan")))
-            out.append(_check(spec, value >= cfg.min_ref_psnr, value, cfg.min_ref_psnr,
-                              f"reference view {value:.1f} dB (minimum {cfg.min_ref_psnr:.1f} dB)"))
-        elif spec.name == "uv_coverage":
-            value = float(metrics.get("uv_coverage", 0.0))
-            out.append(_check(spec, value >= cfg.min_uv_coverage, value, cfg.min_uv_coverage,
-                              f"UV atlas covers {value:.1%} of the texture (minimum {cfg.min_uv_coverage:.1%})"))
-        else:  # pragma: no cover - a CHECKS entry without an implementation is a programming error
-            raise KeyError(f"no implementation for check {stage}.{spec.name}")
-    return out
-
-
-def verdict(checks: list[QACheck]) -> tuple[str, list[str]]:
-    """``fail`` when an error check failed, ``warn`` when only warnings did, else ``pass``; with reasons."""
-    failed = [c for c in checks if not c.passed]
-    reasons = [f"{c.name}: {c.message}" for c in failed]
-    if any(c.severity == ERROR for c in failed):
-        return "fail", reasons
-    return ("warn" if failed else "pass"), reasons
-
-
-@dataclass
-class QAReport:
-    """What ``qa.json`` holds."""
-
-    verdict: str
-    reasons: list[str]
-    checks: dict[str, list[dict[str, Any]]]
-    metrics: dict[str, Any]
-    prior: str = ""
-    notes: list[str] = field(default_factory=list)
-    weighted: dict[str, dict[str, Any]] = field(default_factory=dict)
-
-
-def read_report(qa_dir: Path) -> QAReport:
-    data = json.loads((Path(qa_dir) / QA_FILE).read_text(encoding="utf-8"))
-    return QAReport(**data)
-
-
 def _render_views(asset: Any, cameras: Any, size: int, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
     """RGB (N×3×S×S, on white) and opacity (N×1×S×S) of many views, ``chunk`` views at a time."""
     rgbs, alphas = [], []
@@ -272,7 +154,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     as skipped). ``upstream`` maps stage → its manifest metrics: the producing stages' checks are
     re-evaluated here with this config's thresholds, so the verdict is one consistent decision.
     Parts: the photo mask's silhouette parts against the GLB's components, and the GLB's
-    silhouettes against the NeRF's in ``nerf_dir`` (the ``nerf_fit`` stage's output; None when the
+    silhouettes against the NeRF's in ``nerf_dir`` (the ``nerf`` stage's output; None when the
     asset has no NeRF stage, which leaves ``parts_kept`` unmeasured).
     """
     dev = pick_device(device)
@@ -280,7 +162,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     asset = load_textured(glb_path).to(dev)
     checks: dict[str, list[QACheck]] = {s: stage_checks(s, m, cfg) for s, m in upstream.items() if s in CHECKS}
     finite = all(bool(torch.isfinite(t).all()) for t in (asset.vertices, asset.uvs, asset.texture))
-    own: list[QACheck] = [_check(_spec("qa", "asset_finite"), finite, finite, True,
+    own: list[QACheck] = [check(spec_of("qa", "asset_finite"), finite, finite, True,
                                  "finite" if finite else "the GLB holds NaN/Inf values")]
     health = mesh_health(asset.vertices.cpu(), asset.faces.cpu(), asset.uvs.cpu(), asset.texture.cpu())
     metrics: dict[str, Any] = {k: v for k, v in health.items()}
@@ -309,31 +191,31 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         for name, w in weighted.items():
             metrics[name] = w["value"]
         iou = metrics["mask_iou"]
-        own.append(_check(_spec("qa", "mask_iou"), iou >= cfg.min_mask_iou, iou, cfg.min_mask_iou,
+        own.append(check(spec_of("qa", "mask_iou"), iou >= cfg.min_mask_iou, iou, cfg.min_mask_iou,
                           f"silhouette IoU {iou:.3f} (minimum {cfg.min_mask_iou})"))
         dev_c = metrics["colour_deviation"]
-        own.append(_check(_spec("qa", "colour_deviation"), dev_c is not None and dev_c <= cfg.max_colour_deviation,
+        own.append(check(spec_of("qa", "colour_deviation"), dev_c is not None and dev_c <= cfg.max_colour_deviation,
                           dev_c, cfg.max_colour_deviation,
                           "not measured (empty masks)" if dev_c is None else
                           f"a*b* histogram distance {dev_c:.3f} (maximum {cfg.max_colour_deviation})"))
         hf = metrics["hf_ratio"]
-        own.append(_check(_spec("qa", "hf_ratio"), hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
+        own.append(check(spec_of("qa", "hf_ratio"), hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
                           "not measured (flat photo)" if hf is None else
                           f"novel views keep {hf:.2f}× the photo's high-frequency share (minimum {cfg.min_hf_ratio})"))
         own += _part_checks(cfg, asset, mask[0] > 0.5, int(health["components"] or 0), nerf_dir, dev, metrics)
     else:
         reason = "not measured: non-finite asset" if not finite else "not measured: the GLB has no faces"
         for name in ("mask_iou", "colour_deviation", "hf_ratio", "part_count", "parts_kept"):
-            own.append(_check(_spec("qa", name), False, None, None, reason))
+            own.append(check(spec_of("qa", name), False, None, None, reason))
     closed = bool(health["watertight"])
-    own.append(_check(_spec("qa", "watertight"), closed, closed, True,
+    own.append(check(spec_of("qa", "watertight"), closed, closed, True,
                       "closed" if closed else "the mesh has open edges", ERROR if cfg.require_watertight else WARN))
     degenerate = (health["degenerate_faces"] or 0) / max(1, health["faces"] or 0)
-    own.append(_check(_spec("qa", "degenerate_faces"), degenerate <= cfg.max_degenerate_fraction, round(degenerate, 5),
+    own.append(check(spec_of("qa", "degenerate_faces"), degenerate <= cfg.max_degenerate_fraction, round(degenerate, 5),
                       cfg.max_degenerate_fraction, f"{degenerate:.2%} of the faces are degenerate"))
     everything = [c for cs in checks.values() for c in cs] + own
     decision, reasons = verdict(everything)
-    own.append(_check(_spec("qa", "verdict"), decision != "fail", decision, "pass or warn",
+    own.append(check(spec_of("qa", "verdict"), decision != "fail", decision, "pass or warn",
                       "; ".join(reasons) if reasons else "every check passed"))
     checks["qa"] = own
     report = QAReport(decision, reasons, {s: [asdict(c) for c in cs] for s, cs in checks.items()},
@@ -348,14 +230,14 @@ def _part_checks(cfg: QAConfig, asset: Any, mask: torch.Tensor, components: int,
     """``part_count`` and ``parts_kept``; records ``mask_parts`` and the NeRF comparison in ``metrics``."""
     parts = count_parts(mask, cfg.min_part_share)
     metrics["mask_parts"] = parts
-    out = [_check(_spec("qa", "part_count"), components <= parts, components, parts,
+    out = [check(spec_of("qa", "part_count"), components <= parts, components, parts,
                   f"the GLB has {components} connected component(s), the photo's mask {parts} silhouette part(s)")]
-    spec = _spec("qa", "parts_kept")
+    spec = spec_of("qa", "parts_kept")
     threshold = {"max_missing_part_share": cfg.max_missing_part_share, "min_part_iou": cfg.min_part_iou}
     found = compare_with_nerf(asset, nerf_dir, cfg.part_views, cfg.part_resolution, cfg.part_samples,
                               cfg.turntable_elevation, cfg.part_opening, cfg.part_margin, dev)
     if found is None:
-        return [*out, _check(spec, True, None, threshold, "not measured: no NeRF stage output")]
+        return [*out, check(spec, True, None, threshold, "not measured: no NeRF stage output")]
     metrics["part_iou_min"] = round(found.iou_min, 4)
     metrics["part_iou_mean"] = round(found.iou_mean, 4)
     metrics["missing_part_share_max"] = round(found.missing_share_max, 4)
@@ -366,10 +248,34 @@ def _part_checks(cfg: QAConfig, asset: Any, mask: torch.Tensor, components: int,
                f"silhouette (view {view + 1} of {len(found.iou)}; maximum {cfg.max_missing_part_share:.0%}); "
                f"silhouette IoU min {found.iou_min:.3f} (minimum {cfg.min_part_iou}), mean {found.iou_mean:.3f}")
     value = {"missing_part_share_max": metrics["missing_part_share_max"], "part_iou_min": metrics["part_iou_min"]}
-    return [*out, _check(spec, not (lost or apart), value, threshold,
+    return [*out, check(spec, not (lost or apart), value, threshold,
                          ("lost a part: " if lost else "") + message)]
 
 
 def _finite_json(metrics: dict[str, Any]) -> dict[str, Any]:
     """JSON has no NaN/Inf: non-finite numbers become None (the checks already failed on them)."""
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()}
+
+
+def _build(ctx: StageContext) -> StageWork:
+    cfg = ctx.cfg
+    producers = [s for s in ctx.stages if s != "qa"]
+    # Every producer is an input, the NeRF included (parts_kept renders it), so a changed NeRF
+    # re-runs QA; with --init-mesh there is no NeRF stage and parts_kept is not measured.
+    nerf_dir = ctx.dir("nerf") if "nerf" in producers else None
+
+    def body(out: Path, _ckpt: Path | None) -> StageResult:
+        upstream = {s: ctx.upstream(s).metrics for s in producers}
+        prior = ctx.upstream("texture").prior
+        return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg.qa, upstream, prior, cfg.device,
+                      nerf_dir)
+
+    return StageWork({"qa": cfg.qa}, body)
+
+
+STAGE = Stage(
+    "qa", CODE_VERSION, reads=("reference", "nerf", "dmtet", "texture", "bake"),
+    writes=(QA_FILE, QA_TURNTABLE_FILE, QA_TURNTABLE_GIF), preview=QA_TURNTABLE_FILE, gpu=False, build=_build,
+    description="QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its parts "
+                "against the photo's mask and the NeRF's silhouettes, and every stage's checks; verdict "
+                "pass / warn / fail with reasons (qa.json).")

@@ -17,35 +17,27 @@ from typing import Any
 
 import torch
 
+from morpheus_core.devices import pick_device
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.texture import TextureField, TextureFieldConfig
-from ops.engine.batch import StageJob
+from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
-from ops.engine.loop import LoopConfig, LoopResult, ProgressFn
+from ops.engine.loop import LoopConfig, LoopResult
+from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
-from ops.engine.stage_io import (
-    PREVIEW_FILE,
-    ReferenceTarget,
-    StageResult,
-    load_module,
-    loop_metrics,
-    novel_cameras,
-    pick_device,
-    require_finite_output,
-    save_module,
-    save_stage_preview,
-    write_log,
-)
+from ops.engine.stage import Stage, StageContext, StageWork, optimising
+from ops.engine.stage_job import StageJob, StageResult, loop_metrics
+from ops.engine.target import ReferenceTarget, novel_cameras
 from ops.stages.dmtet import MESH_FILE as DMTET_MESH
 from ops.stages.dmtet import TEXTURE_FILE, load_mesh
 
-CODE_VERSION = "texture_refine-2"  # 2: the official loss balance
+CODE_VERSION = "texture_refine-2"  # 2: the official loss balance (kept as existing stores hold it)
 
 
 @dataclass(frozen=True)
-class TextureRefineConfig:
+class TextureStageConfig:
     """``follow_plan``: pass through when the plan skips high-pass refinement (flat textures)."""
 
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
@@ -63,7 +55,7 @@ class TextureRefineConfig:
 
 
 class TextureTask(GuidedTask):
-    def __init__(self, cfg: TextureRefineConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
+    def __init__(self, cfg: TextureStageConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
                  texture: TextureField, device: torch.device) -> None:
         self.cfg, self.mesh, self.texture = cfg, mesh, texture
         super().__init__(target, suite, cfg.guidance, cfg.loop.steps, {"texture": texture}, [
@@ -92,7 +84,7 @@ def pass_through(dmtet_dir: Path, out_dir: Path, device: str, plan_reason: str) 
                        [f"pass-through: the plan skips high-pass refinement — {plan_reason}"])
 
 
-def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
+def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureStageConfig,
                   priors: PriorsConfig, object_id: str, device: str = "auto", seed: int = 0,
                   suite: PriorSuite | None = None) -> StageJob:
     """Stage 2 on the DMTet stage's mesh and texture field, set up to run (alone or in a batch)."""
@@ -111,22 +103,35 @@ def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: Text
         raise
 
     def finish(result: LoopResult) -> StageResult:
-        require_finite_output("texture_refine", dict(texture.state_dict()))
+        require_finite_output("texture", dict(texture.state_dict()))
         save_module(out_dir / TEXTURE_FILE, texture, tex_cfg)
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
         return StageResult(loop_metrics(result) | {"ref_psnr_before": before, "skipped": False},
                            suite.description, str(dev))
 
-    return StageJob("texture_refine", task, generator, cfg.loop, finish, suite.close)
+    return StageJob("texture", task, generator, cfg.loop, finish, suite.close)
 
 
-def refine_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: TextureRefineConfig,
-                   priors: PriorsConfig, object_id: str, plan_refine: bool = True, plan_reason: str = "",
-                   device: str = "auto", seed: int = 0, checkpoint_dir: Path | None = None,
-                   progress: ProgressFn | None = None, suite: PriorSuite | None = None) -> StageResult:
-    """Run stage 2 on the DMTet stage's mesh and texture field; pass through when the plan says so."""
-    if cfg.follow_plan and not plan_refine:
-        return pass_through(dmtet_dir, out_dir, device, plan_reason)
-    return start_texture(reference_dir, dmtet_dir, out_dir, cfg, priors, object_id, device, seed,
-                         suite).run(checkpoint_dir, progress)
+def _build(ctx: StageContext) -> StageWork:
+    cfg = ctx.cfg
+    plan = ctx.plan
+    refine = plan is None or plan.highpass_refinement.action != "skip"
+    reason = "" if plan is None else plan.highpass_refinement.reason
+    config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
+              "prior_kind": ctx.prior_kind(cfg.texture.guidance.roles)}
+    if cfg.texture.follow_plan and not refine:
+        return StageWork(config, lambda out, _ckpt: pass_through(ctx.dir("dmtet"), out, cfg.device, reason))
+
+    def start(out: Path) -> StageJob:
+        return start_texture(ctx.dir("reference"), ctx.dir("dmtet"), out, cfg.texture, cfg.priors, ctx.key,
+                             cfg.device, cfg.seed, ctx.suite("texture"))
+
+    return optimising(config, start, ctx)
+
+
+STAGE = Stage(
+    "texture", CODE_VERSION, reads=("reference", "dmtet"), writes=(TEXTURE_FILE, PREVIEW_FILE, RUNLOG_FILE),
+    preview=PREVIEW_FILE, gpu=True, build=_build,
+    description="Stage 2: texture refined with the 3D prior (full band) and the 2D prior's VSD on the high "
+                "frequencies; a recorded pass-through when the plan finds the texture flat.")

@@ -1,0 +1,1 @@
+"""Asset export: UV baking (``uv_bake``) and GLB / OBJ writing (``gltf``)."""

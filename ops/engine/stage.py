@@ -1,0 +1,90 @@
+"""The declaration of a pipeline stage: its id, what it reads and writes, and how it makes its output.
+
+A stage's id is its module name (``ops/stages/<id>.py``), its config key (``--set <id>.…``), its
+store folder (``<store>/<photo>/<id>/``) and its Dagster asset key. Each stage module declares one
+``Stage``; ``ops.stages.STAGES`` orders them, and the pipeline, the presets, the Dagster assets and
+the QA checks all read that tuple.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from ops.engine.loop import ProgressFn
+from ops.engine.stage_job import StageJob, StageResult
+
+if TYPE_CHECKING:
+    from assets_store.manifest import Manifest
+    from ops.config.presets import PipelineConfig
+    from ops.engine.priors import PriorSuite
+    from ops.stages.plan import StagePlan
+
+
+class StageContext(Protocol):
+    """What a stage sees of one photo's run when it declares its work (``ops.engine.pipeline.PhotoRun``)."""
+
+    key: str
+    photo: Path
+    cfg: PipelineConfig
+    init_mesh: Path | None
+
+    @property
+    def plan(self) -> StagePlan | None: ...
+
+    @property
+    def stages(self) -> tuple[str, ...]: ...
+
+    def dir(self, stage: str) -> Path: ...
+
+    def upstream(self, stage: str) -> Manifest: ...
+
+    def photo_hash(self) -> str: ...
+
+    def prior_kind(self, roles: tuple[str, ...]) -> str: ...
+
+    def suite(self, stage: str) -> PriorSuite | None: ...
+
+    def progress(self) -> ProgressFn | None: ...
+
+
+@dataclass(frozen=True)
+class StageWork:
+    """One photo's output of a stage: what decides it and how to make it.
+
+    ``config`` is hashed into the fingerprint and recorded in the manifest; ``inputs`` are content
+    hashes beyond the upstream stages' outputs (the photo, an ``--init-mesh`` file); ``body`` makes
+    the output in a staging folder (given the checkpoint folder); ``start`` (optimising stages that
+    will optimise) sets the job up writing into a folder, so several photos can run it together."""
+
+    config: dict[str, Any]
+    body: Callable[[Path, Path | None], StageResult]
+    start: Callable[[Path], StageJob] | None = None
+    inputs: dict[str, str] = field(default_factory=dict)
+
+
+def optimising(config: dict[str, Any], start: Callable[[Path], StageJob], ctx: StageContext,
+               inputs: dict[str, str] | None = None) -> StageWork:
+    """The work of a stage that runs the optimisation loop: alone, or batched through ``start``."""
+    return StageWork(config, lambda out, ckpt: start(out).run(ckpt, ctx.progress()), start, inputs or {})
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the pipeline (see the module docstring for what ``id`` names).
+
+    ``reads``: the stages whose outputs are its inputs (those of them this photo runs);
+    ``writes``: the files of its output; ``preview``: the one people look at (Dagster UI);
+    ``gpu``: it runs under a GPU lease; ``replaced_by_init_mesh``: ``--init-mesh`` skips it."""
+
+    id: str
+    code_version: str
+    reads: tuple[str, ...]
+    writes: tuple[str, ...]
+    preview: str
+    gpu: bool
+    description: str
+    build: Callable[[StageContext], StageWork]
+    replaced_by_init_mesh: bool = False

@@ -1,0 +1,56 @@
+"""One object's stage set up to optimise (``StageJob``), and what a stage reports back (``StageResult``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ops.engine.guided_task import GuidedTask
+from ops.engine.loop import LoopConfig, LoopResult, ProgressFn, run_loop
+
+
+@dataclass
+class StageResult:
+    """What a stage reports back: metrics for the manifest, notes for people, the prior used."""
+
+    metrics: dict[str, Any]
+    prior: str
+    device: str
+    notes: list[str] = field(default_factory=list)
+
+
+def loop_metrics(result: LoopResult) -> dict[str, Any]:
+    last = result.history[-1] if result.history else {}
+    out: dict[str, Any] = {"steps_run": result.steps_run, "resumed_from_step": result.resumed_from,
+                           "loop_wall_s": round(result.wall_s, 3)}
+    out.update({f"guard_{k}": v for k, v in result.guards.as_dict().items()})
+    if "ref_psnr" in last:
+        out["ref_psnr"] = last["ref_psnr"]
+    return out
+
+
+@dataclass
+class StageJob:
+    """One object's stage, set up and ready to optimise: alone (``run``) or in a batch (``run_jobs``).
+
+    ``finish`` writes the stage's outputs from the loop's result; ``close`` releases the object's
+    prior state (adapters, cached references) whatever happened."""
+
+    stage: str
+    task: GuidedTask
+    generator: torch.Generator
+    loop: LoopConfig
+    finish: Callable[[LoopResult], StageResult]
+    close: Callable[[], None]
+
+    def run(self, checkpoint_dir: Path | None = None, progress: ProgressFn | None = None) -> StageResult:
+        try:
+            result = self.finish(run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress))
+            result.metrics["batch_size"] = 1  # every optimising manifest says how many photos shared its steps
+            return result
+        finally:
+            self.close()
