@@ -19,8 +19,10 @@ from morpheus_core.mask_edges import outline_support
 
 @dataclass(frozen=True)
 class Ramp:
-    bad: float  # the factor is 0 here (and beyond)
-    good: float  # the factor is 1 here (and beyond)
+    bad: float
+    """Measurement at which this confidence factor is 0 (and beyond, away from ``good``)."""
+    good: float
+    """Measurement at which this confidence factor is 1 (and beyond); the factors multiply into the score."""
 
     def __call__(self, value: float) -> float:
         return float(np.clip((value - self.bad) / (self.good - self.bad), 0.0, 1.0))
@@ -28,21 +30,22 @@ class Ramp:
 
 @dataclass(frozen=True)
 class ConfidenceParams:
-    # Border ΔE spread around the fitted backdrop (a studio sweep: 0.5–3; a room: 20+).
     backdrop: Ramp = Ramp(20.0, 6.0)
-    # Share of the image the mask covers: tiny masks are specks, huge ones the whole scene.
+    """Border ΔE spread around the fitted backdrop (a studio sweep: 0.5–3; a room: 20+); classical masks only."""
     coverage_low: Ramp = Ramp(0.005, 0.05)
+    """Share of the image the mask covers, low end: tiny masks are specks."""
     coverage_high: Ramp = Ramp(0.95, 0.6)
-    # Share of the image's border pixels the mask covers (a product sits inside the frame).
+    """Share of the image the mask covers, high end: huge masks are the whole scene."""
     border: Ramp = Ramp(0.25, 0.02)
-    # Area-weighted solidity of the kept parts (area / convex hull area; a horse silhouette: 0.55).
+    """Share of the image's border pixels the mask covers (a product sits inside the frame)."""
     compactness: Ramp = Ramp(0.3, 0.6)
-    # Share of the mask's outline on step edges: where colour and edge cues agree on the outline.
+    """Area-weighted solidity of the kept parts (area / convex hull area; a horse silhouette: 0.55)."""
     agreement: Ramp = Ramp(0.2, 0.7)
-    # Share of the mask that a cue marked before morphology filled it (text and clutter: sparse).
+    """Share of the mask's outline on step edges: where colour and edge cues agree; classical masks only."""
     fill: Ramp = Ramp(0.4, 0.8)
-    # Separate parts kept: a set of 2–6 is a product, dozens a texture or a crowd.
+    """Share of the mask a cue marked before morphology filled it (text and clutter: sparse); classical only."""
     parts: Ramp = Ramp(16.0, 6.0)
+    """Separate parts kept: a set of 2–6 is a product, dozens a texture or a crowd."""
 
 
 @dataclass(frozen=True)

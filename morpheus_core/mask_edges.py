@@ -21,24 +21,32 @@ import numpy as np
 
 @dataclass(frozen=True)
 class EdgeParams:
-    smoothing: float = 0.8  # Gaussian σ (px) before the fine-scale gradient
-    coarse_smoothing: float = 2.5  # σ (px) of the coarse scale that tells steps from ramps
-    # A step edge's fine-scale gradient is ≈ coarse/fine σ times its coarse one; a ramp's is ≈ 1×.
+    smoothing: float = 0.8
+    """Gaussian σ (px) before the fine-scale gradient."""
+    coarse_smoothing: float = 2.5
+    """σ (px) of the coarse-scale gradient that tells steps from ramps."""
     min_sharpness: float = 1.6
-    # Canny's hysteresis thresholds, as multiples of the backdrop's 99th-percentile gradient (noise).
+    """Least fine/coarse gradient ratio of a step edge (a step's is ≈ coarse/fine σ, a ramp's ≈ 1)."""
     high_factor: float = 1.6
+    """Canny's high hysteresis threshold, as a multiple of the backdrop's 99th-percentile gradient (noise)."""
     low_factor: float = 0.8
-    min_gradient: float = 0.3  # ΔE per pixel: a noiseless render still needs a real step
-    # A shadow joined to the product through a gap in its outline narrower than twice the radius is cut
-    # off; a piece whose outline is not mostly edges is tried again at the next, larger radius.
+    """Canny's low hysteresis threshold, as a multiple of the backdrop's 99th-percentile gradient (noise)."""
+    min_gradient: float = 0.3
+    """Floor (ΔE per px) of the high threshold (half of it: the low one): a noiseless render still needs a step."""
     gap_radii: tuple[int, ...] = (3, 6, 9, 12, 16)
+    """Erosion radii (px) tried in turn: shadows joined through outline gaps < 2·radius are cut off."""
     # Contrast to the backdrop that a region needs, as a multiple of the backdrop's own 90th-percentile
     # ΔE after smoothing (its noise and unmodelled shading), within [min_contrast, max_contrast].
-    contrast_smoothing: float = 1.5  # σ (px) of the Lab image whose distance to the backdrop is measured
+    contrast_smoothing: float = 1.5
+    """σ (px) of the Lab image whose distance to the backdrop is measured for the contrast test."""
     contrast_factor: float = 2.5
+    """Contrast (ΔE) a region needs, as a multiple of the backdrop's 90th-percentile smoothed ΔE (noise, shading)."""
     min_contrast: float = 2.0
+    """Floor (ΔE) of the contrast a region needs to the backdrop."""
     max_contrast: float = 12.0
-    min_outline_support: float = 0.8  # share of a region's outline that must lie on step edges
+    """Cap (ΔE) of the contrast a region needs to the backdrop (a noisy backdrop asks no more than this)."""
+    min_outline_support: float = 0.8
+    """Share of a region's outline that must lie on step edges; failing pieces retry at the next gap radius."""
 
 
 @dataclass(frozen=True)

@@ -25,23 +25,24 @@ from morpheus_core.mask_parts import PartRecord, PartRules, select_parts
 class ClassicalParams:
     """Knobs of the classical chain; the defaults are tuned on studio-style product photos."""
 
-    border_fraction: float = 0.02  # width of the border ring that samples the background
-    # ΔE from the background above which a pixel starts as object (studio noise is ΔE ≈ 1–3).
+    border_fraction: float = 0.02
+    """Width of the border ring that samples the background, as a share of the shorter side (≥ 2 px)."""
     distance_threshold: float = 12.0
-    # Shadows darken the background without changing its hue: darker-than-background lightness
-    # differences count at this weight so contact shadows are not taken for the object.
+    """ΔE from the background above which a pixel starts as object (studio noise is ΔE ≈ 1–3)."""
     shadow_lightness_weight: float = 0.35
-    # Seed pixels within this ΔE of a dimmed background colour are left for GrabCut to decide.
+    """Weight of darker-than-background lightness in ΔE: shadows darken without a hue change, so they stay out."""
     shadow_tolerance: float = 6.0
-    morph_fraction: float = 0.006  # opening/closing radius as a share of the image diagonal
+    """Seed pixels within this ΔE of a dimmed background colour start as background, for GrabCut to decide."""
+    morph_fraction: float = 0.006
+    """Opening radius (closing: twice it) as a share of the image diagonal; also GrabCut's undecided band."""
     grabcut_iterations: int = 4
-    # GrabCut may wander off on low-contrast photos: keep the seed mask when the refined mask
-    # overlaps it by less than this IoU.
+    """GrabCut iterations refining the seed mask; 0 keeps the seed."""
     grabcut_min_iou: float = 0.7
+    """Keep the seed when GrabCut's mask overlaps it by less IoU: GrabCut may wander off on low-contrast photos."""
     edges: EdgeParams = field(default_factory=EdgeParams)
     parts: PartRules = field(default_factory=PartRules)
-    # An outlined region joins the seed when the colour seed covers less than this share of it.
     max_colour_overlap: float = 0.5
+    """An edge-outlined region joins the seed when the colour seed covers less than this share of it."""
 
 
 @dataclass(frozen=True)

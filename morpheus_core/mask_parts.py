@@ -17,8 +17,10 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PartRules:
-    min_relative_area: float = 0.08  # of the largest part's area
-    max_shadow_share: float = 0.6  # a part with more shadow-like pixels than this is a shadow
+    min_relative_area: float = 0.08
+    """Parts smaller than this share of the largest part's area are dropped as specks or crumbs."""
+    max_shadow_share: float = 0.6
+    """A part with a larger share of shadow-like (dimmed backdrop) pixels is dropped as a shadow."""
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,15 @@ from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 
 @dataclass(frozen=True)
 class TextureFieldConfig:
-    """``bound`` r: the field covers [-r, r]^3 (points outside are clamped to the box)."""
+    """The albedo field of the mesh stages: a hash grid over the object box and a small MLP."""
 
     hashgrid: HashGridConfig = field(default_factory=HashGridConfig)
     bound: float = 1.0
+    """Half side r (world units) of the [−r, r]³ box the field covers; points outside are clamped to it."""
     hidden_dim: int = 64
+    """Width of the MLP's hidden layers."""
     hidden_layers: int = 1
+    """Hidden layers of the MLP (0: a linear map from the hash-grid features)."""
 
     def __post_init__(self) -> None:
         if not self.bound > 0:

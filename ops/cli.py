@@ -205,7 +205,7 @@ def run_command(args: argparse.Namespace) -> int:
     from ops.engine.pipeline import run_photo
     from ops.engine.pipeline_batch import run_batch
     from ops.engine.store_layout import open_store
-    from ops.intake.prepare_batch import list_photos
+    from ops.intake.photo_folder import list_photos
     from ops.reporting.catalog_rows import record_outcomes
     from ops.reporting.progress import ConsoleProgress
     from ops.reporting.run_table import format_run_table
@@ -262,8 +262,9 @@ def run_command(args: argparse.Namespace) -> int:
 def prepare(args: argparse.Namespace) -> int:
     """Prepare one photo or a folder; print the outcome table; exit 1 only for failures under --strict."""
     from ops.intake.photo import LoadConfig
+    from ops.intake.photo_folder import list_photos
     from ops.intake.prepare import PrepareConfig
-    from ops.intake.prepare_batch import format_table, list_photos, prepare_many, print_progress
+    from ops.intake.prepare_batch import format_table, prepare_many, print_progress
     from ops.intake.segment import SegmentConfig
     from ops.stages.plan import PlanConfig
 

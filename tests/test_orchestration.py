@@ -23,7 +23,8 @@ from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
 from ops.stages.checks import CHECKS, read_report
-from orchestration.assets import ASSET_OF_STAGE, GPU_POOL, STAGE_ASSET_NAMES
+from ops.engine.stage_ids import STAGE_IDS
+from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB
 from orchestration.partitions import PHOTOS
 from tests.orchestration_helpers import (
@@ -61,9 +62,9 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
     root, _, _, result = deployment
     assert result.success
     mats = materializations(result)
-    assert {a for a, p in mats if p == KEY} == set(STAGE_ASSET_NAMES)
-    for stage, asset in ASSET_OF_STAGE.items():
-        meta = mats[(asset, KEY)]
+    assert {a for a, p in mats if p == KEY} == set(STAGE_IDS)
+    for stage in STAGE_IDS:
+        asset, meta = stage, mats[(stage, KEY)]
         for field in ("wall_time_s", "device", "preset", "cache_hit", "status", "metrics", "stage_dir", "prior"):
             assert field in meta, f"{asset} lacks {field}"
         assert meta["cache_hit"].value is False
@@ -78,7 +79,7 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
 
     evaluations = check_evaluations(result)
     seen = {(e.asset_key.to_user_string(), e.check_name) for e in evaluations}
-    expected = {(ASSET_OF_STAGE[s], c.name) for s, specs in CHECKS.items() for c in specs}
+    expected = {(s, c.name) for s, specs in CHECKS.items() for c in specs}
     assert seen == expected
     assert all(e.partition == KEY for e in evaluations)
     # The checks agree with the QA stage's own report, failures included.
@@ -96,7 +97,7 @@ def test_rerun_is_all_cache_hits(deployment) -> None:
     again = run_job(defs, instance, [KEY])
     assert again.success
     assert {a: m["cache_hit"].value for (a, p), m in materializations(again).items() if p == KEY} == \
-        dict.fromkeys(STAGE_ASSET_NAMES, True)
+        dict.fromkeys(STAGE_IDS, True)
 
 
 def _schedule_requests(defs: dg.Definitions, instance: dg.DagsterInstance) -> dict[str, str]:
@@ -152,10 +153,10 @@ def test_definitions_shape(deployment) -> None:
     _, defs, _, _ = deployment
     graph = defs.resolve_asset_graph()
     names = {k.to_user_string() for k in graph.get_all_asset_keys()}
-    assert names >= {"photo_files", *STAGE_ASSET_NAMES}
+    assert names >= {"photo_files", *STAGE_IDS}
     assert graph.get(dg.AssetKey("reference")).parent_keys == {dg.AssetKey("photo_files")}
     assert dg.AssetKey("nerf") in graph.get(dg.AssetKey("dmtet")).parent_keys
-    assert graph.get(dg.AssetKey("qa")).parent_keys == {dg.AssetKey("bake")}
+    assert graph.get(dg.AssetKey("qa")).parent_keys == {dg.AssetKey(s) for s in STAGE_IDS[:-1]}
     for asset in defs.assets:
         if isinstance(asset, dg.AssetsDefinition):
             key = asset.key.to_user_string()
@@ -214,7 +215,7 @@ def test_batch_with_a_failing_photo_resumes_from_its_checkpoint(tmp_path: Path,
         assert manifest(store, good, "nerf").metrics["resumed_from_step"] is None
         for key in (bad, good):
             assert read_report(store.stage_dir(key, "qa")).verdict in ("pass", "warn", "fail")
-        for asset in STAGE_ASSET_NAMES:
+        for asset in STAGE_IDS:
             assert instance.get_materialized_partitions(dg.AssetKey(asset)) >= {bad, good}, asset
 
 

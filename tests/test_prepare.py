@@ -128,7 +128,12 @@ def test_cli_single_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert out.splitlines()[0].split() == ["PHOTO", "OUTCOME", "METHOD", "PLAN", "DETAIL"]
     assert "product.png" in out and " ok " in out and "grid " in out
     assert (tmp_path / "ref" / "reference.json").is_file() and (tmp_path / "ref" / "plan.json").is_file()
-    assert main(["prepare", str(photo), "--out", str(tmp_path / "ref")]) == 0
+    assert main(["prepare", str(photo), "--out", str(tmp_path / "ref"), "--no-rembg"]) == 0
+    assert "up to date" in capsys.readouterr().out
+    # Other settings make another reference, as the pipeline's reference stage would.
+    assert main(["prepare", str(photo), "--out", str(tmp_path / "ref"), "--no-rembg", "--border-ratio", "0.2"]) == 0
+    assert "up to date" not in capsys.readouterr().out
+    assert main(["prepare", str(photo), "--out", str(tmp_path / "ref"), "--no-rembg", "--border-ratio", "0.2"]) == 0
     assert "up to date" in capsys.readouterr().out
 
 

@@ -5,6 +5,7 @@ idempotent, resumable and safe under concurrent openers."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import threading
 from pathlib import Path
@@ -12,13 +13,22 @@ from pathlib import Path
 import dagster as dg
 import pytest
 
-from assets_store.hashing import config_hash
+from assets_store.hashing import bytes_sha256, config_hash
 from assets_store.manifest import MANIFEST_FILE, Manifest
 from assets_store.store import CHECKPOINTS_DIR, Store
 from ops.config.tree import from_dict
 from ops.engine.pipeline import PhotoRun, run_photo
+from ops.engine.priors import PriorsConfig
 from ops.engine.stage_ids import RENAMED_STAGES
-from ops.engine.store_layout import LAYOUT, LAYOUT_FILE, RENAMED_CONFIG, layout_of, migrate, open_store
+from ops.engine.store_layout import (
+    CONFIG_CHANGES,
+    LAYOUT,
+    LAYOUT_FILE,
+    adopt_layout1_checkpoint,
+    layout_of,
+    migrate,
+    open_store,
+)
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
 from ops.stages.nerf import NerfStageConfig
@@ -41,9 +51,9 @@ def _downgrade(store: Store) -> None:
             data["stage"] = OLD_NAME.get(data["stage"], data["stage"])
             fp = data["fingerprint"]
             fp["inputs"] = {OLD_NAME.get(k, k): v for k, v in fp["inputs"].items()}
-            for old, new in RENAMED_CONFIG.get(folder.name, ()):
-                group = data["config"][new[0]]
-                group[old[-1]] = group.pop(new[-1])
+            for change in reversed(CONFIG_CHANGES):
+                if folder.name in change.stages:
+                    assert change.backward(data["config"]), (folder.name, change)
             fp["config_hash"] = config_hash(data["config"])
             (folder / MANIFEST_FILE).write_text(json.dumps(data))
             folder.rename(photo / data["stage"])
@@ -84,21 +94,37 @@ def test_a_store_from_before_is_read_cached_with_the_same_outputs(current: Store
         assert m is not None and config_hash(m.config) == m.fingerprint.config_hash
 
 
-def test_an_interrupted_nerf_stage_resumes_from_its_checkpoint_after_the_migration(current: Store,
-                                                                                      tmp_path: Path) -> None:
+@pytest.mark.parametrize("stage", ["nerf", "dmtet"])
+def test_an_interrupted_stage_resumes_from_its_layout1_checkpoint(current: Store, tmp_path: Path, stage: str) -> None:
     shutil.copytree(current.root, tmp_path / "old")
     store = Store(tmp_path / "old")
+    later = ("nerf", "dmtet", "texture", "bake", "qa")[("nerf", "dmtet").index(stage):]
     run = PhotoRun(PHOTOS / "mug.jpg", KEY, store, CFG, "tiny", None, None, None)
-    resume_at = run.checkpoint_path(run.planned("nerf"))
-    for stage in ("nerf", "dmtet", "texture", "bake", "qa"):  # interrupted in the NeRF stage
-        shutil.rmtree(store.stage_dir(KEY, stage))
-    resume_at.mkdir(parents=True)
-    (resume_at / "step_000004.safetensors").write_bytes(b"state")
+    planned = run.planned(stage)
+    for s in later:  # interrupted in ``stage``: its checkpoint is all there is of it
+        shutil.rmtree(store.stage_dir(KEY, s))
+    # Where the code before the renaming kept it: old input names, the layout-1 spelling of the config.
+    old_config = run.config_record(planned)
+    for change in reversed(CONFIG_CHANGES):
+        if stage in change.stages:
+            change.backward(old_config)
+    old_inputs = {OLD_NAME.get(k, k): v for k, v in planned.fingerprint.inputs.items()}
+    old_dir = (store.photo_dir(KEY) / CHECKPOINTS_DIR / OLD_NAME.get(stage, stage) / config_hash(old_config)[:12]
+               / bytes_sha256(repr(sorted(old_inputs.items())).encode())[:12])
+    old_dir.mkdir(parents=True)
+    (old_dir / "step_000004.safetensors").write_bytes(b"state")
     _downgrade(store)
-    assert (store.photo_dir(KEY) / CHECKPOINTS_DIR / "nerf_fit").is_dir()
-    report = migrate(store)
-    assert report.checkpoints_moved == 1 and not report.problems
+    assert not migrate(store).problems
+    resume_at = run.checkpoint_path(planned)
+    assert not resume_at.exists(), "the checkpoint folder's name changed with the layout"
+    assert adopt_layout1_checkpoint(store, KEY, stage, run.config_record(planned), planned.fingerprint)
     assert (resume_at / "step_000004.safetensors").read_bytes() == b"state"
+    assert not adopt_layout1_checkpoint(store, KEY, stage, run.config_record(planned), planned.fingerprint)
+    # The pipeline does the same before it starts a stage: run it from the layout-1 folder once more.
+    legacy = store.checkpoint_dir(KEY, stage) / old_dir.parent.name / old_dir.name  # moved with its stage folder
+    os.replace(resume_at, legacy)
+    outcome = run_photo(PHOTOS / "mug.jpg", store, CFG, "tiny", KEY, until=stage)
+    assert [s.status for s in outcome.stages][-1] == "resumed", outcome  # (the fake step file is then skipped)
 
 
 def test_the_migration_is_idempotent_and_finishes_after_an_interruption(old_store: Store) -> None:
@@ -156,6 +182,8 @@ def test_manifests_written_by_the_old_code_become_current_configs(tmp_path: Path
         assert config_hash(m.config) == m.fingerprint.config_hash
         parsed = from_dict(cls, m.config[stage])  # the recorded settings are valid current settings
         assert isinstance(parsed, cls)
+        if "priors" in m.config:
+            assert from_dict(PriorsConfig, m.config["priors"]).lora.rank == 4
     assert Manifest.from_json((store.stage_dir(KEY, "dmtet") / MANIFEST_FILE).read_text()).config["dmtet"][
         "texture_field"]
 
@@ -172,3 +200,29 @@ def test_dagster_history_of_the_old_asset_keys_shows_under_the_stage_ids(current
         event = instance.get_latest_materialization_event(dg.AssetKey(new))
         assert event is not None and event.asset_materialization.metadata["migrated_from"].value in RENAMED_ASSETS
     assert migrate_history(instance, current) == dict.fromkeys(RENAMED_ASSETS.values(), 0)
+
+
+def test_catalog_rows_from_before_read_under_the_stage_ids(tmp_path: Path) -> None:
+    import datetime as dt
+
+    from assets_store.catalog import Catalog
+    from ops.reporting.report import build_report
+    from ops.reporting.stage_columns import current_column, current_stage_columns
+
+    when = dt.datetime(2026, 11, 30, tzinfo=dt.timezone.utc)
+    old = {"run_id": "r1", "photo_key": "a.jpg", "created_at": when, "status": "ok", "nerf_fit_wall_s": 3.0,
+           "uv_bake_status": "ran", "check_texture_refine_stable_optimisation": "pass", "runlog_nerf_fit": "a/x"}
+    new = {"run_id": "r2", "photo_key": "b.jpg", "created_at": when + dt.timedelta(hours=1), "status": "ok",
+           "nerf_wall_s": 5.0, "bake_status": "cached"}
+    catalog = Catalog(tmp_path / ".catalog")
+    catalog.append([old])
+    catalog.append([new])
+    table = current_stage_columns(catalog.read())
+    assert not {"nerf_fit_wall_s", "uv_bake_status", "runlog_nerf_fit"} & set(table.column_names)
+    rows = {r["photo_key"]: r for r in table.to_pylist()}
+    assert rows["a.jpg"]["nerf_wall_s"] == 3.0 and rows["b.jpg"]["nerf_wall_s"] == 5.0
+    assert rows["a.jpg"]["bake_status"] == "ran" and rows["a.jpg"]["check_texture_stable_optimisation"] == "pass"
+    assert rows["a.jpg"]["runlog_nerf"] == "a/x"
+    assert current_column("metric_ref_psnr") == "metric_ref_psnr" and current_column("dmtet_wall_s") == "dmtet_wall_s"
+    page = build_report(catalog)
+    assert "nerf_fit" not in page and "uv_bake" not in page

@@ -27,20 +27,24 @@ _INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation
 
 @dataclass(frozen=True)
 class HashGridConfig:
-    """Defaults: the paper's 16 levels × 2 features, table 2^19, base 16, max res ≈ 4096.
-
-    Progressive masking (threestudio's schedule): ``start_levels`` active at first, one more
-    level every ``update_steps`` after ``start_step``. ``start_levels = n_levels`` disables it.
-    """
+    """A multi-resolution hash grid (defaults: the paper's), with threestudio's progressive level masking."""
 
     n_levels: int = 16
+    """Resolution levels of the grid (the paper: 16)."""
     n_features_per_level: int = 2
+    """Features stored per level (the paper: 2); the encoding is n_levels × this wide."""
     log2_table_size: int = 19
+    """log2 of each level's hash-table rows (the paper: 2^19); coarse levels that fit are stored densely."""
     base_resolution: int = 16
+    """Grid resolution (cells per side) of the coarsest level (the paper: 16)."""
     per_level_scale: float = 1.447269237440378
+    """Resolution growth per level (≥ 1); 2^(8/15) takes 16 levels from 16 to ≈ 4096, the paper's finest."""
     start_levels: int | None = None
+    """Levels active at first under progressive masking (threestudio); None or n_levels: all, no masking."""
     start_step: int = 0
+    """Step from which progressive masking switches on one more level every ``update_steps``."""
     update_steps: int = 500
+    """Steps between switching on successive levels under progressive masking."""
 
     def __post_init__(self) -> None:
         if self.n_levels < 1 or self.n_features_per_level < 1:

@@ -96,12 +96,19 @@ class NerfConfig:
     grid: HashGridConfig = field(
         default_factory=lambda: HashGridConfig(start_levels=8, start_step=2000, update_steps=500)
     )
+    """The field's hash-grid encoding: the paper's, 8 of 16 levels at first, one more every 500 steps from 2k."""
     hidden: int = 64
+    """Width of the density and albedo MLPs' hidden layers (the paper: 64)."""
     n_hidden_layers: int = 2
+    """Hidden layers of the density and albedo MLPs each (the paper: 2)."""
     bbox_radius: float = 1.0
+    """Half side r of the field's [−r, r]³ box (world units); rays are clipped to it and the grid spans it."""
     blob_density: float = 10.0
+    """Log-density bias at the centre of the initial blob, scale·(1 − |x|/radius) (Magic3D): SDS starts from a ball."""
     blob_radius: float = 0.5
+    """Radius (world units) where the blob bias falls to 0; it is negative (emptier) further out."""
     normal_eps: float = 0.01
+    """Step (world units) of the central differences whose density gradient gives the normals."""
 
     def __post_init__(self) -> None:
         if self.bbox_radius <= 0 or self.blob_radius <= 0 or self.normal_eps <= 0:

@@ -32,15 +32,20 @@ from morpheus_core.render.volume import OccupancyGrid, VolumeRenderConfig, rende
 
 @dataclass(frozen=True)
 class ConversionConfig:
-    """``levels``: occupancy iso-levels tried; ``ring_views`` views at each of ``elevations`` (plus the
-    reference view) at ``resolution`` px for the silhouettes, rendered with ``samples`` per ray."""
+    """NeRF → DMTet: the occupancy iso-levels tried and the silhouette views that choose among them."""
 
     levels: tuple[float, ...] = (0.05, 0.1, 0.2, 0.35, 0.5, 0.65, 0.8)
+    """Box-filtered occupancy iso-levels in (0, 1) tried; the best mean silhouette IoU wins (ties: lower)."""
     ring_views: int = 6
+    """Check views evenly spaced in azimuth at each of ``elevations``, besides the reference view."""
     elevations: tuple[float, ...] = (25.0, -20.0)
+    """Elevations (degrees) of the rings of check views."""
     resolution: int = 64
+    """Size (px) of the check views' NeRF and mesh silhouettes."""
     samples: int = 96
+    """Samples per ray of the NeRF silhouette renders (unstratified)."""
     chunk_points: int = 1 << 18
+    """Points per NeRF density call while filtering and rendering: bounds peak memory, not the result."""
 
     def __post_init__(self) -> None:
         if not self.levels or not all(0.0 < v < 1.0 for v in self.levels):

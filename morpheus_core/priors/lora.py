@@ -34,11 +34,18 @@ from morpheus_core.priors.runtime import PriorRuntime
 
 @dataclass(frozen=True)
 class LoraSettings:
+    """A LoRA adapter on a prior's attention projections and the Adam that trains it."""
+
     rank: int = 4
+    """Rank of the low-rank update of each adapted layer."""
     alpha: float = 4.0
+    """Scale of the update: ``alpha / rank`` multiplies it (alpha = rank: scale 1)."""
     target_modules: tuple[str, ...] = ("to_q", "to_k", "to_v", "to_out.0")
+    """Names of the attention projections that get an adapter (diffusers' attention layers)."""
     lr: float = 1e-4
+    """Adam learning rate of the adapter (ProlificDreamer and the paper: 1e-4)."""
     betas: tuple[float, float] = (0.9, 0.999)
+    """Adam's moment decay rates."""
 
     def __post_init__(self) -> None:
         if self.rank < 1 or not self.alpha > 0 or not self.lr > 0:

@@ -48,21 +48,22 @@ _DEGENERATE_REL = 64
 
 @dataclass(frozen=True)
 class RasterConfig:
-    """``max_pairs_per_chunk`` bounds memory: each (triangle, pixel) or (edge, pixel) pair costs
-    about 150 bytes of temporaries, so the default 2^21 caps a slice at ~300 MB (a 300k-face
-    sphere at 512², batch 4, makes ~3.5M pairs: two slices).
-    ``near_w``: triangles with a vertex at w <= near_w are culled.
-    ``min_area_px``: triangles with |area| below this (pixels²) count as degenerate and are skipped
-    (so do those whose area is below 64 machine epsilons times their longest edge², i.e. collinear
-    up to rounding).
-    ``min_edge_px``: silhouette edges shorter than this on screen give no crossing (their slope is
-    undefined)."""
+    """Memory bounds and degeneracy tolerances of the rasteriser (and of its silhouette anti-aliasing).
+
+    ``max_pairs_per_chunk``: a 300k-face sphere at 512², batch 4, makes ~3.5M pairs: two slices.
+    ``min_area_px``: triangles below 64 machine epsilons times their longest edge² (collinear up to
+    rounding) are skipped too."""
 
     max_pairs_per_chunk: int = 1 << 21
+    """(Triangle, pixel) or (edge, pixel) pairs per slice; each costs ~150 B of temporaries: 2^21 caps ~300 MB."""
     cull_backfaces: bool = False
+    """Skip back-facing triangles (by screen winding); false draws both sides."""
     near_w: float = 1e-5
+    """Triangles with a vertex at clip w ≤ this (behind or crossing the camera plane) are culled whole."""
     min_area_px: float = 1e-10
+    """Triangles with |screen area| below this (px²) count as degenerate and are skipped."""
     min_edge_px: float = 1e-6
+    """Anti-aliasing: silhouette edges shorter than this (px) on screen give no crossing (slope undefined)."""
 
     def __post_init__(self) -> None:
         if self.max_pairs_per_chunk < 1:

@@ -28,23 +28,25 @@ from morpheus_core.render.output import RenderOutput
 
 @dataclass(frozen=True)
 class VolumeRenderConfig:
-    """``n_samples`` per ray (paper 256); ``chunk_points`` bounds the field's peak memory."""
+    """How a radiance field is volume-rendered: samples per ray, normals, memory and sample skipping."""
 
     n_samples: int = 256
+    """Samples per ray, evenly spaced across the ray's span of the box (the paper: 256)."""
     stratified: bool = True
+    """Jitter each sample within its bin (else bin centres); the NeRF stage jitters training renders only."""
     with_normals: bool = True
+    """Render normals too (6 density queries a sample); the NeRF stage asks when normal_smooth_weight > 0."""
     max_density: float = 1e10
+    """Densities are clamped below this so optical depth stays finite (inf·0 is NaN for zero-length steps)."""
     chunk_points: int = 1 << 18
-    # Normals cost six density queries per sample (central differences): they are computed only
-    # where the sample's compositing weight exceeds this, since a sample's share of the rendered
-    # normal is its weight (measured on an H200: normals were 6/7 of a NeRF step's encoder work).
-    # 0 computes them everywhere.
+    """Points per field call: bounds the field's peak memory, not the result."""
+    # Why these defaults (H200): normals were 6/7 of a NeRF step's encoder work, so they are skipped
+    # where they barely count; the transmittance probe cost as much as it saved (paper NeRF step 177
+    # vs 161 ms at one object, equal at eight; blob-shaped field), so it is off.
     normal_weight_threshold: float = 1e-4
-    # > 0: training renders first probe density without gradients, then evaluate (and backpropagate
-    # through) only samples whose transmittance still exceeds this — what lies behind an opaque
-    # surface changes the image by less than it. Off by default: on an H200 the probe cost as much
-    # as it saved (paper NeRF step 177 vs 161 ms at one object, equal at eight; blob-shaped field).
+    """Normals only where a sample's compositing weight (its share of the normal) exceeds this; 0: everywhere."""
     transmittance_threshold: float = 0.0
+    """> 0: training renders evaluate only samples whose transmittance (no-grad density probe) exceeds it; 0: off."""
 
     def __post_init__(self) -> None:
         if self.n_samples < 1 or self.chunk_points < 1:
@@ -58,13 +60,16 @@ class VolumeRenderConfig:
 
 @dataclass(frozen=True)
 class OccupancyGridConfig:
-    """Cells below ``density_threshold`` are skipped; with δ ≈ 0.0135 (256 samples across the
-    box) a density of 0.01 has alpha ≈ 1e-4 per sample, far below what a render shows."""
+    """A decayed running maximum of density per cell: samples in empty cells are not evaluated."""
 
     resolution: int = 64
+    """Cells per side of the occupancy grid over the field's [−r, r]³ box."""
     decay: float = 0.95
+    """Each refresh keeps max(decay · old, new) per cell (0–1): cells the field empties fade out."""
     density_threshold: float = 0.01
+    """Cells with density below this are skipped: at δ ≈ 0.0135 (256 samples/box) alpha ≈ 1e-4, invisible."""
     update_every: int = 16
+    """Steps between refreshes (one jittered density probe per cell each)."""
 
     def __post_init__(self) -> None:
         if self.resolution < 1 or self.update_every < 1:

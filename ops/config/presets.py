@@ -39,7 +39,7 @@ class PipelineConfig:
     seed: int = 0
     """Seed of the fitting stages' random numbers (field init, novel cameras, ray jitter, diffusion noise)."""
     device: str = "auto"
-    """Torch device of every stage: ``auto`` (CUDA when available, else CPU), ``cpu``, ``cuda``, ``cuda:1``…"""
+    """Torch device: ``auto`` (CUDA if available, else CPU; the learned QA metrics: CPU), ``cpu``, ``cuda:1``…"""
     priors: PriorsConfig = field(default_factory=PriorsConfig)
     reference: ReferenceStageConfig = field(default_factory=ReferenceStageConfig)
     nerf: NerfStageConfig = field(default_factory=NerfStageConfig)

@@ -29,26 +29,40 @@ from morpheus_core.guidance_presets import (
 
 @dataclass(frozen=True)
 class GuidanceSettings:
-    """t ∈ [t_lo, t_hi]; with ``t_hi_start`` set, the upper bound starts there and drops to
-    ``t_hi`` at ``anneal_step`` (the paper: 0.98 → 0.5 at step 5k of the 10k NeRF stage). Unset,
-    ``anneal_step`` is half of the stage's steps, so ``--set nerf.loop.steps=N`` anneals at N/2."""
+    """One stage's hybrid guidance (Algorithm 1): the 3D prior, the optional 2D prior, t schedule, λc, σ."""
 
     lambda_c: float = LAMBDA_C
+    """λc in [0, 1]: prior terms weigh λc, the reference-view terms (1 − λc)/σ² (the paper: 5e-4)."""
     sigma: float = SIGMA
+    """σ > 0 of the reference-view terms' weight (1 − λc)/σ² (the paper: 1)."""
     k3d: float = K_3D
+    """Weight k ≥ 0 of the 3D prior (Zero123, full band) and its reference term (the paper: 1); 0 makes it inactive."""
     mode_3d: Mode = "sds"
+    """``sds`` or ``vsd`` for the 3D prior (vsd trains a per-object LoRA; the paper's "fine-tuned 3D" ablation)."""
     cfg_3d: float = CFG_3D
+    """Classifier-free guidance scale of the 3D prior's noise prediction (the paper: 3)."""
     t_lo: float = 0.02
+    """Lower bound of the diffusion timestep t, as a fraction of T (the paper: 0.02)."""
     t_hi: float = 0.5
+    """Upper bound of t as a fraction of T (the paper: 0.5); after the anneal when ``t_hi_start`` is set."""
     t_hi_start: float | None = None
+    """Upper bound of t until ``anneal_step``, then ``t_hi`` (the paper's NeRF: 0.98 → 0.5); None: no anneal."""
     anneal_step: int | None = None
+    """Step where t's upper bound drops to ``t_hi`` (paper: 5k of 10k); None: half the stage's steps."""
     use_2d: bool = False
+    """Add the 2D prior (SD1.5 + canny ControlNet + IP-Adapter) term; false is the paper's Base row."""
     k2d: float = K_2D
+    """Weight k ≥ 0 of the 2D prior's band and its reference term (the paper: 3; the k2D sweep: 0–5)."""
     r: float = HIGH_PASS_R
+    """2D prior's high-pass cut: DCT indices ≥ r·D are kept (paper: 0.6); 0 = full band, 1 = none (term off)."""
     mode_2d: Mode = "vsd"
+    """``vsd`` (a per-object LoRA counterpart, the paper) or ``sds`` for the 2D prior ("high-pass w/o fine-tuning")."""
     cfg_2d: float = CFG_2D
+    """Classifier-free guidance scale of the 2D prior's noise prediction (the paper: 2)."""
     cfg_lora: float = CFG_LORA
+    """Classifier-free guidance scale of the VSD LoRA counterpart's prediction ε_φ (1: no guidance)."""
     grad_clip: float | None = None
+    """Clamp each element of the prior gradient to ±this; None: no clamp."""
 
     def __post_init__(self) -> None:
         if self.mode_3d not in ("sds", "vsd") or self.mode_2d not in ("sds", "vsd"):

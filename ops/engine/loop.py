@@ -38,24 +38,29 @@ class BadStep(RuntimeError):
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """``grad_clip``: max global gradient norm per optimiser (None: off). ``max_bad_steps``:
-    consecutive bad steps before the last good state is restored."""
+    """The schedule, checkpoints, guards and precision of one optimising stage's loop."""
 
     steps: int
+    """Optimisation steps of the stage (the paper: NeRF 10k, DMTet 5k, texture 5k)."""
     checkpoint_every: int = 100
+    """Steps between checkpoints: resume points, and the good state a run of bad steps is rolled back to."""
     log_every: int = 10
+    """Steps between run-log rows (loss terms, evaluation metrics, progress); the last step is always logged."""
     grad_clip: float | None = 10.0
+    """Largest global gradient norm per optimiser, clipped before each update; None: no clipping."""
     max_bad_steps: int = 3
+    """Consecutive bad (non-finite, skipped) steps after which the last good state is restored."""
     keep_checkpoints: int = 2
-    # Autocast dtype of each step's forward pass; parameters, optimiser state and the evaluation stay
-    # float32. Under float16 the loss is scaled before backward and the gradients unscaled after,
-    # dynamically: the scale starts at ``fp16_loss_scale``, halves on a step whose gradients
-    # overflow (the step is skipped and counted) and doubles after ``fp16_growth_interval`` good
-    # steps — the small prior terms (λc = 5e-4) underflow without it, the pixel-summed reference
-    # loss overflows with too much of it.
+    """How many of the newest checkpoints are kept on disk."""
+    # Parameters, optimiser state and the evaluation stay float32 whatever the precision. Under
+    # float16 the loss scale is dynamic: the small prior terms (λc = 5e-4) underflow without it, the
+    # pixel-summed reference loss overflows with too much of it.
     precision: Literal["float32", "bfloat16", "float16"] = "float32"
+    """Autocast dtype of each step's forward pass; float16 adds dynamic loss scaling (``fp16_*``)."""
     fp16_loss_scale: float = 1024.0
+    """Initial float16 loss scale; it halves on a step whose gradients overflow (step skipped and counted)."""
     fp16_growth_interval: int = 100
+    """Good float16 steps after which the loss scale doubles."""
 
     def __post_init__(self) -> None:
         if self.steps < 0:

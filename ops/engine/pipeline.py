@@ -33,6 +33,7 @@ from ops.engine.priors import WEIGHT_FREE, PriorSuite
 from ops.engine.stage import StageWork
 from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
+from ops.engine.store_layout import adopt_layout1_checkpoint, checkpoint_path
 from ops.stages import BY_ID, STAGES
 from ops.stages.plan import StagePlan, read_plan
 
@@ -191,6 +192,10 @@ class PhotoRun:
     def checkpoint_path(self, planned: PlannedStage) -> Path:
         return checkpoint_path(self.store, self.key, planned.stage, planned.fingerprint)
 
+    def config_record(self, planned: PlannedStage) -> dict[str, Any]:
+        """The stage's config as plain JSON data: what the manifest records and the hash is of."""
+        return json.loads(json.dumps(to_dict(planned.work.config), default=str))
+
     def run(self, stage: str) -> Manifest:
         """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
         planned = self.planned(stage)
@@ -200,6 +205,8 @@ class PhotoRun:
     def execute(self, planned: PlannedStage) -> Manifest:
         """Make the stage's output (no cache lookup), resuming from its checkpoint; raises on failure."""
         ckpt = self.checkpoint_path(planned)
+        adopt_layout1_checkpoint(self.store, self.key, planned.stage, self.config_record(planned),
+                                 planned.fingerprint)
         resumed = ckpt.is_dir() and any(ckpt.iterdir())
         start = time.perf_counter()
         with self.store.stage_writer(self.key, planned.stage) as writer:
@@ -213,7 +220,7 @@ class PhotoRun:
         plan = self.plan if stage != "reference" else read_plan(writer.path)
         manifest = Manifest(
             stage=stage, photo_key=self.key, fingerprint=planned.fingerprint, outputs={},
-            config=json.loads(json.dumps(to_dict(planned.work.config), default=str)),
+            config=self.config_record(planned),
             metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
             plan={} if plan is None else {"refine": plan.highpass_refinement.action,
                                           "grid": plan.dmtet_grid.value, "export_faces": plan.export.value,
@@ -261,12 +268,6 @@ class PhotoRun:
     def _report(self, stage: str, status: str) -> None:
         if self.reporter is not None:
             self.reporter(ProgressEvent(f"{self.key}:{stage}:{status}", 1, 1, 0.0, {}))
-
-
-def checkpoint_path(store: Store, key: str, stage: str, fp: Fingerprint) -> Path:
-    """Where a stage resumes from: one folder per (config, inputs), so a changed input starts afresh."""
-    root = store.checkpoint_dir(key, stage)
-    return root / fp.config_hash[:12] / bytes_sha256(repr(sorted(fp.inputs.items())).encode())[:12]
 
 
 def check_stage_id(stage: str, what: str = "stage") -> str:

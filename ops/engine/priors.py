@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -44,19 +44,17 @@ class PriorsConfig:
     """Which diffusion priors guide the fitting stages, where their weights live and how they run."""
 
     kind: PriorKind = "auto"
-    """``real`` (Zero123, SD1.5; fails without weights), ``proxy`` (weight-free), ``auto``: real if all weights present."""
+    """``real`` (Zero123, SD1.5; needs the weights), ``proxy`` (weight-free); ``auto``: real if all weights exist."""
     models_root: str | None = None
     """Folder holding the prior weights; None: ``$MORPHEUS_MODELS``, else ``~/.cache/morpheus3d/models``."""
     dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
     """Precision of the frozen prior networks; ``auto``: float16 on CUDA (as the paper), float32 elsewhere."""
     accel: Literal["auto", "eager", "cudagraph", "compile"] = "auto"
-    """Frozen forwards: auto = CUDA graphs on CUDA (launch-bound: 68 → 20 ms per Zero123 SDS step, H200), else eager."""
+    """Frozen forwards: eager, cudagraph or compile; auto: CUDA graphs on CUDA (68 → 20 ms a Zero123 step, H200)."""
     image2d_resolution: int = 512
     """Side (px) renders are resized to for the 2D prior (SD1.5 + ControlNet); 512 is SD1.5's native size."""
-    lora_rank: int = 4
-    """Rank of the per-object LoRA that VSD trains on each prior as its counterpart ε_φ."""
-    lora_lr: float = 1e-4
-    """Adam learning rate of the VSD LoRA (ProlificDreamer and the paper: 1e-4)."""
+    lora: LoraSettings = field(default_factory=LoraSettings)
+    """The per-object LoRA that VSD trains on each prior as its counterpart ε_φ."""
     proxy_grid: int = 48
     """DMTet grid resolution (cells per side, 4–1024) that meshes the weight-free proxy's inflated silhouette."""
     proxy_thickness: float = 1.0
@@ -193,7 +191,7 @@ class RealSuite(PriorSuite):
         self.models = {role: models[role] for role in roles}
         for model in self.models.values():
             model.set_reference(object_id, reference_rgba)
-        settings = LoraSettings(rank=cfg.lora_rank, lr=cfg.lora_lr)
+        settings = cfg.lora
         self.loras: dict[str, ObjectLoras] = {}
         for role in vsd_roles:
             loras = ModelCache.loras(self.models[role], settings)

@@ -8,7 +8,6 @@ and a configurable pixel limit applies before any pixel is decoded.
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
+from assets_store.hashing import file_sha256
 from ops.intake.errors import ImageTooLargeError, InvalidImageError
 
 FORMATS = frozenset({"JPEG", "MPO", "PNG", "WEBP", "TIFF", "BMP"})
@@ -25,16 +25,18 @@ _ALPHA_MODES = frozenset({"RGBA", "LA", "PA", "RGBa", "La"})
 
 @dataclass(frozen=True)
 class LoadConfig:
-    """Limits on what a photo may be. ``max_pixels`` must stay under Pillow's own bomb limit."""
+    """Limits on what a photo may be, and how it is shrunk right after decoding."""
 
     max_pixels: int = 40_000_000
+    """Largest photo accepted (width × height, px); must stay under Pillow's own decompression-bomb limit."""
     min_side: int = 32
+    """Smallest shorter side (px) a photo may have."""
     max_aspect: float = 12.0
-    # Photos are shrunk to this longest side right after decoding: outputs are ≤ 512 px, and a
-    # 40 MP float image would cost ~0.5 GB per worker for nothing.
+    """Largest longer/shorter side ratio a photo may have."""
     max_side: int = 3072
-    # An alpha channel counts only when at least this share of pixels is transparent (< 0.5).
+    """Longest side (px) after decoding: outputs are ≤ 512 px, and a 40 MP float image costs ~0.5 GB a worker."""
     min_transparent_fraction: float = 0.01
+    """An alpha channel counts only when at least this share of pixels is transparent (alpha < 0.5)."""
 
     def __post_init__(self) -> None:
         pillow_limit = Image.MAX_IMAGE_PIXELS
@@ -64,14 +66,6 @@ class Photo:
     @property
     def size(self) -> tuple[int, int]:
         return self.rgb.shape[1], self.rgb.shape[0]
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _open(path: Path) -> Image.Image:

@@ -28,6 +28,11 @@ def is_photo_name(name: str) -> bool:
     return not name.startswith(".") and not lower.endswith(PARTIAL_SUFFIXES) and Path(lower).suffix in EXTENSIONS
 
 
+def list_photos(folder: Path) -> list[Path]:
+    """The photos directly in ``folder`` (what ``scan`` finds), sorted by name."""
+    return [Path(folder) / name for name in sorted(scan(folder).values())]
+
+
 def scan(folder: Path) -> dict[str, str]:
     """Photo key → file name for every photo-named regular file directly in ``folder``."""
     folder = Path(folder)

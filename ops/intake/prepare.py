@@ -32,8 +32,9 @@ class PrepareConfig:
     load: LoadConfig = field(default_factory=LoadConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     sizes: tuple[int, ...] = (256, 512)
-    # Empty margin on each side of the object's longer side: it fills 1 − 2·border_ratio of the square.
+    """Sides (px) of the square recentred references written (``rgba_<size>.png``); others are resized from these."""
     border_ratio: float = 0.1
+    """Empty margin on each side of the object's longer side: it fills 1 − 2·border_ratio of the square."""
 
     def to_dict(self) -> dict[str, Any]:
         return json.loads(json.dumps(asdict(self), default=str))

@@ -1,25 +1,32 @@
 """Prepare many photos: one reference folder each, a per-file outcome, never stop on a bad photo.
 
 Folder names are the store's photo keys (safe characters only, unique within the batch). A
-photo whose folder already holds a valid reference of the same file content is left alone, so
-re-running over a growing catalog only does the new photos.
+photo whose folder already holds a reference made with the same fingerprint as the pipeline's
+reference stage would give it (file content, settings, code version) is left alone, so re-running
+over a growing catalog only does the new photos, and changed settings redo them all.
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TextIO
 
+from assets_store.atomic import atomic_write_text
 from assets_store.keys import assign_keys
+from assets_store.manifest import Fingerprint
+from assets_store.store import Store
+from ops.config.presets import PipelineConfig
+from ops.engine.pipeline import PhotoRun
 from ops.intake.errors import PreparationError
-from ops.intake.photo import EXTENSIONS, file_sha256
 from ops.intake.prepare import PrepareConfig, prepare_reference, read_reference
 from ops.intake.segment import Segmenter
 from ops.stages.plan import PlanConfig, plan_reference, read_plan
+from ops.stages.reference import ReferenceStageConfig
 
 
 @dataclass(frozen=True)
@@ -33,12 +40,6 @@ class Outcome:
     seconds: float
 
 
-def list_photos(folder: Path) -> list[Path]:
-    """Files with an image extension (any case), sorted; hidden files are ignored."""
-    return sorted(p for p in Path(folder).iterdir()
-                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in EXTENSIONS)
-
-
 def folder_names(photos: Iterable[Path]) -> dict[Path, str]:
     """The store's photo key per photo (``assets_store.keys``): safe, unique and stable."""
     photos = list(photos)
@@ -46,19 +47,35 @@ def folder_names(photos: Iterable[Path]) -> dict[Path, str]:
     return {p: keys[p.name] for p in photos}
 
 
-def _up_to_date(photo: Path, folder: Path) -> bool:
-    info = read_reference(folder)
-    return info is not None and read_plan(folder) is not None and info.source_sha256 == file_sha256(photo)
+FINGERPRINT_FILE = "fingerprint.json"
+
+
+def reference_fingerprint(photo: Path, cfg: PrepareConfig, plan_cfg: PlanConfig) -> Fingerprint:
+    """The fingerprint the pipeline's reference stage gives this photo under these settings."""
+    config = PipelineConfig(reference=ReferenceStageConfig(cfg, plan_cfg))
+    run = PhotoRun(Path(photo), "prepare", Store(Path(photo).parent), config, "", None, None, None)
+    return run.planned("reference").fingerprint
+
+
+def _up_to_date(folder: Path, fp: Fingerprint) -> bool:
+    try:
+        recorded = json.loads((folder / FINGERPRINT_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return read_reference(folder) is not None and read_plan(folder) is not None and recorded == asdict(fp)
 
 
 def prepare_one(photo: Path, folder: Path, cfg: PrepareConfig, plan_cfg: PlanConfig, segmenter: Segmenter,
                 force: bool = False) -> Outcome:
     start = time.perf_counter()
-    if not force and _up_to_date(photo, folder):
-        return Outcome(photo, folder, "up to date", "-", "-", "reference already prepared from this file", 0.0)
+    fp = reference_fingerprint(photo, cfg, plan_cfg)
+    if not force and _up_to_date(folder, fp):
+        return Outcome(photo, folder, "up to date", "-", "-", "reference already prepared from this file and "
+                       "these settings", 0.0)
     try:
         info = prepare_reference(photo, folder, cfg, segmenter)
         plan = plan_reference(folder, plan_cfg)
+        atomic_write_text(folder / FINGERPRINT_FILE, json.dumps(asdict(fp), sort_keys=True) + "\n")
     except PreparationError as exc:
         return Outcome(photo, None, "failed", "-", "-", f"{type(exc).__name__}: {exc.reason}. Fix: {exc.fix}",
                        time.perf_counter() - start)

@@ -26,18 +26,24 @@ from ops.intake.rembg_local import U2NetSession, find_model, model_candidates
 class SegmentConfig:
     classical: ClassicalParams = field(default_factory=ClassicalParams)
     use_rembg: bool = True
-    rembg_model: Path | None = None  # a u2net .onnx file or a folder holding one; None: $U2NET_HOME
+    """Try rembg's u2net (local model only) before the classical chain when the photo has no alpha."""
+    rembg_model: Path | None = None
+    """A u2net .onnx file or a folder holding one; None: ``$U2NET_HOME`` (default ``~/.u2net``)."""
     work_size: int = 512
-    min_area_fraction: float = 0.005  # smaller objects: error (the product cannot be that small)
-    max_area_fraction: float = 0.9  # larger: warning (the background was probably not separated)
-    border_touch_fraction: float = 0.01  # share of an image edge covered by the object before warning
-    # Classical segmentation assumes a near-uniform background: warn above this border ΔE spread.
+    """Longest side (px) segmentation runs at, for speed; the soft alpha is resized back to the photo."""
+    min_area_fraction: float = 0.005
+    """Smallest share of the image the mask may cover; smaller is an error (a product cannot be that small)."""
+    max_area_fraction: float = 0.9
+    """Mask share of the image above which to warn (the background was probably not separated)."""
+    border_touch_fraction: float = 0.01
+    """Share of an image edge's pixels the object may cover before a "touches the border" warning."""
     max_background_spread: float = 8.0
+    """Border ΔE spread above which to warn: classical segmentation assumes a near-uniform background."""
     confidence: ConfidenceParams = field(default_factory=ConfidenceParams)
-    # Mask confidence below ``ok_confidence`` is a warning; below ``min_confidence`` the photo stops
-    # here (LowConfidenceError) instead of sending a doubtful mask on to the GPU stages.
     ok_confidence: float = 0.5
+    """Mask confidence (0–1) below which a warning is recorded."""
     min_confidence: float = 0.15
+    """Mask confidence (0–1) below which the photo stops here (LowConfidenceError), not at the GPU stages."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_confidence <= self.ok_confidence <= 1.0:

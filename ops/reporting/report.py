@@ -18,6 +18,7 @@ their ``ReportOptions`` in ``ops.reporting.report_sections``; this module assemb
 from __future__ import annotations
 
 import datetime as dt
+from dataclasses import replace
 from pathlib import Path
 
 from assets_store.atomic import atomic_write_text
@@ -31,6 +32,7 @@ from ops.reporting.report_sections import (
     summary_section,
     worst_section,
 )
+from ops.reporting.stage_columns import current_stage_columns
 
 SECTIONS = (("summary", "Summary"), ("metrics", "Metric distributions"), ("curves", "Error against run time"),
             ("worst", "Worst assets"), ("failures", "Failures"))
@@ -75,7 +77,8 @@ def build_report(
     root; default: the catalog folder's parent)."""
     options = options or ReportOptions()
     base = Path(base_dir) if base_dir is not None else catalog.root.parent
-    read = catalog.scan(since)
+    scanned = catalog.scan(since)
+    read = replace(scanned, table=current_stage_columns(scanned.table))
     table = read.table
     latest = latest_rows(table) if table.num_rows and "photo_key" in table.column_names else table.slice(0, 0)
     bodies = {"summary": summary_section(read, catalog.root, since)}

@@ -41,17 +41,21 @@ CODE_VERSION = "uv_bake-2"  # 2: drops floaters, records topology (kept as exist
 
 @dataclass(frozen=True)
 class BakeStageConfig:
-    """``max_faces``: None takes the plan's decimation target (else ``bake.map.max_faces``).
-    ``min_component_share``: connected components with less than this share of the total surface
-    area are dropped before unwrapping (the largest one always stays); 0 keeps everything."""
+    """The final stage: floaters dropped, UV unwrap and bake (``map``), GLB/OBJ export and previews."""
 
     map: BakeConfig = field(default_factory=BakeConfig)
     max_faces: int | None = None
+    """Face budget of the export; None: the plan's decimation target, else ``bake.map.max_faces``."""
     write_obj: bool = True
+    """Also write ``asset.obj`` (+ .mtl, .png) beside ``asset.glb``."""
     turntable_views: int = 8
+    """Views of the exported GLB around the object (15° elevation) in ``turntable.png``."""
     preview_size: int = 160
+    """Tile size (px) of ``turntable.png`` and ``reference_view.png``."""
     eval_resolution: int = 256
+    """Render size (px) of the exported GLB for the reference-view PSNR and the turntable."""
     min_component_share: float = 0.01
+    """Components below this share of the surface area are dropped before unwrapping (largest kept); 0 keeps all."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_component_share < 1.0:

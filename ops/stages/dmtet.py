@@ -60,34 +60,51 @@ CODE_VERSION = "dmtet-2"  # 2: loss balance, silhouette-chosen conversion, NeRF 
 
 @dataclass(frozen=True)
 class DMTetStageConfig:
-    """``grid``: the tet grid (None: the plan's choice, capped at ``max_grid``)."""
+    """Stage 1b: the tet grid, its optimisation schedule and loss weights, and the texture field."""
 
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
     resolution: int = 512
+    """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
+    """Random orbit views rendered for the 3D prior each step, besides the reference view."""
     grid: int | None = None
+    """Tet grid resolution (cells per side, ≥ 8); None: the plan's choice (else ``max_grid``); capped at max_grid."""
     max_grid: int = 128
+    """Largest tet grid (cells per side), whatever ``grid`` or the plan asks for (the paper: 128)."""
     conversion: ConversionConfig = field(default_factory=ConversionConfig)
     deform_scale: float = 0.5
+    """Largest vertex offset, in cells per axis (0–1): half a cell keeps axis neighbours from passing each other."""
     texture_field: TextureFieldConfig = field(default_factory=TextureFieldConfig)
     guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
+    """The paper's stage 1b: 3D prior SDS, t ∈ [0.02, 0.5]."""
     lr_sdf: float = 1e-3
+    """Adam learning rate of the SDF values at the grid vertices."""
     lr_deform: float = 1e-2
+    """Adam learning rate of the grid vertices' deformations (before their tanh)."""
     lr_grid: float = 1e-2
+    """Adam learning rate of the texture field's hash-grid tables."""
     lr_mlp: float = 1e-3
+    """Adam learning rate of the texture field's MLP."""
     mask_weight: float = 1.0
+    """Weight of the reference view's opacity-vs-mask BCE (a mean over pixels, as the official code)."""
     # Against the mean reference terms these keep the weights the regularisers had against the summed
     # ones before the official balance (÷ 3 channels).
     laplacian_weight: float = 3.0
+    """Weight of the mesh's uniform-Laplacian smoothness term (a mean over vertices)."""
     normal_consistency_weight: float = 0.03
+    """Weight of the normal consistency term: 1 − cos between adjacent face normals, a mean over edges."""
     sdf_reg_weight: float = 0.003
-    # The NeRF's silhouettes from the conversion's check views (``conversion``), one view per step,
-    # hold the geometry the NeRF learned while the prior refines it (BCE, a mean like the mask's).
+    """Weight of the SDF sign-change regulariser over crossing grid edges (against floaters, spurious flips)."""
     nerf_silhouette_weight: float = 1.0
+    """BCE weight (a mean) of the NeRF's check-view silhouettes, one view a step: holds the NeRF's geometry."""
     colour_fit_steps: int = 300
+    """Adam steps fitting the texture field to the NeRF's albedo (or the init mesh's colours) before optimising."""
     colour_fit_points: int = 1 << 15
+    """Surface points sampled (jittered ±2 cells around the NeRF mesh) for that colour fit."""
     init_mesh_max_faces: int = 3000
+    """``--init-mesh`` is decimated to this many faces for its winding number (O(points × faces))."""
     preview_size: int = 192
+    """Tile size (px) of ``preview.png`` (photo | reference render | three orbit views)."""
 
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1 or self.max_grid < 4:

@@ -39,18 +39,27 @@ CODE_VERSION = "nerf_fit-2"  # 2: the official loss balance (a version string, k
 class NerfStageConfig:
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=10_000, checkpoint_every=500, log_every=50))
     resolution: int = 128
+    """Render size (px) of the reference and novel views each step (the paper: 128)."""
     n_views: int = 1
+    """Random orbit views rendered for the 3D prior each step, besides the reference view."""
     model: NerfConfig = field(default_factory=NerfConfig)
     render: VolumeRenderConfig = field(default_factory=lambda: VolumeRenderConfig(n_samples=256, with_normals=False))
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
     use_occupancy: bool = True
+    """Skip samples in empty occupancy-grid cells (``occupancy``); false evaluates the field at every sample."""
     guidance: GuidanceSettings = field(
         default_factory=lambda: GuidanceSettings(t_hi_start=0.98, t_hi=0.5))
+    """The paper's stage 1a: 3D prior SDS, t's upper bound annealed 0.98 → 0.5 halfway."""
     lr_grid: float = 1e-2
+    """Adam learning rate of the hash-grid tables."""
     lr_mlp: float = 1e-3
+    """Adam learning rate of the density and albedo MLPs."""
     mask_weight: float = 1.0
-    normal_smooth_weight: float = 1.0  # the official λ_normal_smoothness, on the mean
+    """Weight of the reference view's opacity-vs-mask BCE (a mean over pixels, as the official code)."""
+    normal_smooth_weight: float = 1.0
+    """The official λ_normal_smoothness, on the mean over the novel views' normals; 0 skips rendering normals."""
     preview_size: int = 160
+    """Tile size (px) of ``preview.png`` (photo | reference render | three orbit views)."""
 
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1:

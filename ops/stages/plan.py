@@ -44,17 +44,26 @@ MEASURE_SIZE = 256  # the calibration below holds for the 256-px reference
 
 @dataclass(frozen=True)
 class PlanConfig:
-    hf_cutoff: float = 0.15  # share of Nyquist where the paper's high-pass band (r = 0.6) starts at 256 px
-    hf_threshold: float = 0.08  # below: the object is flat enough that high-pass refinement adds nothing
+    hf_cutoff: float = 0.15
+    """Share of Nyquist where the paper's high-pass band (r = 0.6) starts at 256 px: energy above it is measured."""
+    hf_threshold: float = 0.08
+    """High-frequency energy share below which texture refinement is skipped (flat ≤ 0.054, detailed ≥ 0.11)."""
     min_grid: int = 64
-    max_grid: int = 128  # the paper's DMTet grid
+    """Smallest DMTet grid (cells per side) the plan picks, even when detail or face limits ask for less."""
+    max_grid: int = 128
+    """Largest DMTet grid (cells per side) the plan picks; 128 is the paper's grid."""
     grid_step: int = 16
+    """The planned DMTet grid is a multiple of this (rounded down)."""
     source_px_per_cell: float = 2.0
-    surface_per_silhouette: float = 4.0  # Cauchy: surface = 4 × mean projected area (convex bodies)
+    """Least source-photo pixels per grid cell across the object: no finer grid than the photo resolves."""
+    surface_per_silhouette: float = 4.0
+    """Surface area estimate as a multiple of the silhouette area (Cauchy: 4 × mean projection, convex bodies)."""
     extract_face_limit: int = 250_000
+    """The grid is capped so the estimated extracted surface (≈ 9 faces per cell² of surface) stays below this."""
     export_max_faces: int = 50_000
-    # The reference camera (distance 2.5, fov 40°) sees 2·2.5·tan 20° = 1.82 units of the 2-unit grid cube.
+    """Estimated face count above which the plan marks the mesh for decimation before UV unwrapping (xatlas)."""
     frame_in_grid: float = 2 * 2.5 * math.tan(math.radians(20.0)) / 2.0
+    """Share of the 2-unit grid cube the reference view spans: distance 2.5, fov 40° see 2·2.5·tan 20° = 1.82 units."""
 
 
 @dataclass(frozen=True)

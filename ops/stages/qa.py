@@ -57,41 +57,61 @@ class QAConfig:
     what the draft preset reaches on the bundled photos (GLB reference PSNR 19–23 dB, mask IoU
     > 0.9), so a failing check means a broken asset, not a coarse one.
 
-    Parts: ``min_part_share`` is the smallest share of the photo mask's area that counts as a
-    silhouette part (smaller pieces are segmentation specks). ``parts_kept`` renders the NeRF and
-    the GLB from ``part_views`` novel views at ``part_resolution`` px (the NeRF with
-    ``part_samples`` samples per ray) and fails when a region the NeRF shows and the GLB lacks
-    exceeds ``max_missing_part_share`` of that view's NeRF silhouette, or the IoU of some view is
-    below ``min_part_iou``; disagreements thinner than 2·``part_opening`` + 1 px (outline rings,
-    not parts) are ignored, and so is what the NeRF shows within ``part_margin`` px of the GLB's
-    silhouette (0: none; a mesh uniformly thinner than its NeRF then fails too)."""
+    ``parts_kept`` renders the NeRF and the GLB from ``part_views`` novel views and compares their
+    silhouettes (``part_*``, ``max_missing_part_share``, ``min_part_iou``)."""
 
     min_ref_psnr: float = 15.0
+    """Error below: the exported GLB's reference-view PSNR (dB) against the photo (check ``bake.reference_psnr``)."""
     min_mask_iou: float = 0.80
+    """Error below: IoU (0–1) of the GLB's reference-view silhouette with the photo's mask."""
     min_uv_coverage: float = 0.25
+    """Warning below: share (0–1) of the texture the UV atlas covers."""
     min_area_fraction: float = 0.02
+    """Warning below: share of the photo the object's mask covers (check ``reference.object_size``)."""
     max_guard_events: int = 10
+    """Warning above: NaN/Inf guard events (skipped or rolled-back steps, restores) of an optimising stage."""
     max_colour_deviation: float = 0.5
+    """Warning above: 1 − Bhattacharyya coefficient (0–1) of turntable vs photo a*b* histograms (colour drift)."""
     min_hf_ratio: float = 0.05
+    """Warning below: turntable views' high-frequency energy share relative to the photo's (1: as detailed)."""
     max_degenerate_fraction: float = 0.01
+    """Warning above: share of faces with ~zero area (≤ 1e-12 × bounding-box diagonal²) or repeated corners."""
     require_watertight: bool = False
+    """Make an open mesh (edges with other than two faces) an error instead of a warning."""
     eval_resolution: int = 800
+    """Render size (px) of the GLB's reference view for PSNR, SSIM and mask IoU (the paper's evaluation: 800)."""
     turntable_views: int = 100
+    """Turntable views of the GLB for colour deviation, HF ratio, learned metrics, the GIF (the paper: 100)."""
     turntable_resolution: int = 256
+    """Render size (px) of the turntable views."""
     turntable_elevation: float = 15.0
+    """Elevation (degrees) of the turntable and of the ``parts_kept`` views."""
     render_chunk: int = 8
+    """Turntable views rendered per batch: bounds peak memory, not the result."""
     preview_size: int = 128
+    """Tile size (px) of ``turntable.png`` and frame size of ``turntable.gif``."""
     strip_views: int = 8
+    """Views (evenly picked from the turntable) in the ``turntable.png`` strip."""
     weighted_metrics: bool = True
+    """Compute the learned metrics (LPIPS, CLIP similarity, CLIP-IQA, MANIQA) whose weights are installed."""
     models_root: str | None = None
+    """Folder of the learned metrics' weights; None: ``$MORPHEUS_MODELS``, else the default root."""
     min_part_share: float = 0.01
+    """Smallest share of the photo mask's area that counts as a silhouette part (smaller: segmentation specks)."""
     part_views: int = 6
+    """Novel views (at ``turntable_elevation``) from which ``parts_kept`` compares NeRF and GLB silhouettes."""
     part_resolution: int = 96
+    """Render size (px, ≥ 16) of the ``parts_kept`` silhouettes."""
     part_samples: int = 64
+    """Samples per ray of the NeRF's ``parts_kept`` silhouettes."""
     part_opening: int = 1
+    """NeRF/GLB disagreements thinner than 2·this + 1 px (outline rings, not parts) are ignored."""
     part_margin: int = 0
+    """What the NeRF shows within this many px of the GLB's silhouette is ignored (0: none; thin meshes fail)."""
     max_missing_part_share: float = 0.1
+    """Error above: a region the NeRF shows and the GLB lacks, as a share of that view's NeRF silhouette."""
     min_part_iou: float = 0.5
+    """Error below: NeRF vs GLB silhouette IoU in any ``parts_kept`` view."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_mask_iou <= 1.0 or not 0.0 <= self.min_uv_coverage <= 1.0:

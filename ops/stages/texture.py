@@ -38,16 +38,23 @@ CODE_VERSION = "texture_refine-2"  # 2: the official loss balance (kept as exist
 
 @dataclass(frozen=True)
 class TextureStageConfig:
-    """``follow_plan``: pass through when the plan skips high-pass refinement (flat textures)."""
+    """Stage 2: the texture field's refinement on the fixed DMTet mesh under the hybrid guidance."""
 
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(steps=5000, checkpoint_every=500, log_every=50))
     resolution: int = 512
+    """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
+    """Random orbit views rendered for the priors each step, besides the reference view."""
     guidance: GuidanceSettings = field(default_factory=lambda: GuidanceSettings(use_2d=True))
+    """The paper's stage 2: 3D prior SDS full band + 2D prior VSD high-pass (r = 0.6, k2D = 3)."""
     lr_grid: float = 1e-2
+    """Adam learning rate of the texture field's hash-grid tables."""
     lr_mlp: float = 1e-3
+    """Adam learning rate of the texture field's MLP."""
     follow_plan: bool = True
+    """Pass the DMTet texture through (recorded) when the plan skips high-pass refinement (flat textures)."""
     preview_size: int = 192
+    """Tile size (px) of ``preview.png`` (photo | reference render | three orbit views)."""
 
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1:
