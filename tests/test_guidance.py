@@ -332,3 +332,19 @@ def test_ablation_rows_run_and_their_equivalences_hold() -> None:
         assert torch.allclose(grads[a][1], grads[b][1], atol=1e-14), (a, b)
     assert not torch.allclose(grads["ours"][0], grads["full_pass_2d"][0])
     assert not torch.allclose(grads["ours"][0], grads["high_pass_2d_sds"][0])
+
+
+def test_paper_rows_hold_the_papers_numbers() -> None:
+    """The rows are changes to the texture stage's settings; written out, they are the paper's terms."""
+    from morpheus_core.diffusion import TimestepRange
+    from morpheus_core.guidance import GuidanceConfig
+    from morpheus_core.guidance_presets import term_2d, term_3d
+
+    late = TimestepRange(0.02, 0.5)
+    three_d = term_3d("sds", 1.0, late, 3.0, 1.0)
+    rows = paper_ablations()
+    assert rows["ours"] == GuidanceConfig((three_d, term_2d("vsd", 3.0, 0.6, late, 2.0, 1.0)), 5e-4, 1.0)
+    assert rows["base"] == GuidanceConfig((three_d,), 5e-4, 1.0)
+    assert rows["k2d=0"].terms[1].filters[0].k == 0.0 and rows["r=1.0"].terms[1].filters[0].band.kind == "null"
+    assert rows["full_pass_2d"].terms[1].filters[0].band.kind == "full"
+    assert rows["finetuned_3d"].terms[0].mode == "vsd" and rows["high_pass_2d_sds"].terms[1].mode == "sds"

@@ -20,9 +20,9 @@ from torch import Tensor, nn
 from morpheus_core.cameras import Cameras
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
+from morpheus_core.guidance_presets import GuidanceSettings
 from morpheus_core.loss_balance import scaled_total
 from morpheus_core.render.output import RenderOutput
-from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.loop import StepOutput
 from ops.engine.priors import PriorSuite
 from ops.engine.target import ReferenceTarget, reference_psnr

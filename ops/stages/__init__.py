@@ -1,5 +1,5 @@
-"""The pipeline's stages, one module each, in order: ``STAGES`` is what the pipeline, the presets,
-the Dagster assets and the QA checks read."""
+"""The pipeline's stages, one module each, in order: ``STAGES`` is what the pipeline, the Dagster
+assets and the QA checks read."""
 
 from ops.engine.stage import Stage
 from ops.engine.stage_ids import STAGE_IDS

@@ -36,12 +36,12 @@ from morpheus_core.geometry.nerf_to_dmtet import (
 )
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.geometry.winding import winding_number
+from morpheus_core.guidance_presets import DMTET_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
-from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import BadStep, LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -75,7 +75,7 @@ class DMTetStageConfig:
     deform_scale: float = 0.5
     """Largest vertex offset, in cells per axis (0–1): half a cell keeps axis neighbours from passing each other."""
     texture_field: TextureFieldConfig = field(default_factory=TextureFieldConfig)
-    guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
+    guidance: GuidanceSettings = field(default_factory=lambda: DMTET_GUIDANCE)
     """The paper's stage 1b: 3D prior SDS, t ∈ [0.02, 0.5]."""
     lr_sdf: float = 1e-3
     """Adam learning rate of the SDF values at the grid vertices."""

@@ -19,10 +19,10 @@ from torch import Tensor
 from morpheus_core.devices import pick_device
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
+from morpheus_core.guidance_presets import NERF_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
-from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -47,8 +47,7 @@ class NerfStageConfig:
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
     use_occupancy: bool = True
     """Skip samples in empty occupancy-grid cells (``occupancy``); false evaluates the field at every sample."""
-    guidance: GuidanceSettings = field(
-        default_factory=lambda: GuidanceSettings(t_hi_start=0.98, t_hi=0.5))
+    guidance: GuidanceSettings = field(default_factory=lambda: NERF_GUIDANCE)
     """The paper's stage 1a: 3D prior SDS, t's upper bound annealed 0.98 → 0.5 halfway."""
     lr_grid: float = 1e-2
     """Adam learning rate of the hash-grid tables."""

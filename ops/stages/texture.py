@@ -19,10 +19,10 @@ import torch
 
 from morpheus_core.devices import pick_device
 from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.guidance_presets import TEXTURE_GUIDANCE, GuidanceSettings
 from morpheus_core.render.mesh_renderer import render_mesh
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
-from ops.engine.guidance_settings import GuidanceSettings
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -45,7 +45,7 @@ class TextureStageConfig:
     """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
     """Random orbit views rendered for the priors each step, besides the reference view."""
-    guidance: GuidanceSettings = field(default_factory=lambda: GuidanceSettings(use_2d=True))
+    guidance: GuidanceSettings = field(default_factory=lambda: TEXTURE_GUIDANCE)
     """The paper's stage 2: 3D prior SDS full band + 2D prior VSD high-pass (r = 0.6, k2D = 3)."""
     lr_grid: float = 1e-2
     """Adam learning rate of the texture field's hash-grid tables."""
