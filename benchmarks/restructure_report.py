@@ -16,12 +16,15 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import platform
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+import torch
 
 from assets_store.atomic import atomic_write_text
 from ops.config.presets import preset
@@ -109,7 +112,10 @@ def to_markdown(res: dict) -> str:
                      f"{row['metrics']} | {', '.join(row['metrics_differ']) or 'none'} |")
     lines += ["", "`runlog.parquet` records each logged step's wall time, so it differs between any two runs; "
               "`qa.json` groups its checks by stage id (`nerf`, `texture`, `bake` for `nerf_fit`, "
-              "`texture_refine`, `uv_bake`).", "",
+              "`texture_refine`, `uv_bake`) and its skipped-metric messages name the modules' new paths "
+              "(`morpheus_core/metrics/…`); nothing else in it differs. Both stores were made with one CPU "
+              "thread (`OMP_NUM_THREADS=1`, `torch.set_num_threads(1)`): with two, the DMTet stage's last bits vary "
+              "between runs of the same code (seen with the code before as well).", "",
               "## The store written by the code before, opened by the current code", "",
               " · ".join(f"{k} {v}" for k, v in res["old_store_read"].items()), ""]
     return "\n".join(lines)
@@ -124,8 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     key = args.photo.name
     res = {
-        "date": dt.date.today().isoformat(), "machine": f"{platform.machine()}, {platform.processor() or 'CPU'}, "
-        f"Python {platform.python_version()}", "command": "python -m benchmarks.restructure_report " + " ".join(
+        "date": dt.date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"torch {torch.__version__}", "command": "python -m benchmarks.restructure_report " + " ".join(
             sys.argv[1:] if argv is None else argv),
         "before_ref": args.before_ref, "lines_before": line_counts(args.before_ref), "lines_after": line_counts(None),
         "identity": identity(args.before_store / key, args.after_store / key),
