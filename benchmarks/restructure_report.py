@@ -129,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--photo", type=Path, required=True, help="the photo both stores hold (same path as when made)")
     args = p.parse_args(argv)
     key = args.photo.name
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__}"
+    machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+               f"torch {torch.__version__}")
     res = {
         "date": dt.date.today().isoformat(), "machine": machine,
         "command": "python -m benchmarks.restructure_report " + " ".join(sys.argv[1:] if argv is None else argv),
