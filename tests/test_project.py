@@ -93,3 +93,19 @@ def test_dependency_direction(package: str, forbidden: set[str]) -> None:
     for path in (ROOT / package).rglob("*.py"):
         bad = _imports(path) & forbidden
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_no_source_file_outside_benchmarks_is_over_400_lines() -> None:
+    too_long = {str(p.relative_to(ROOT)): n for folder in ("morpheus_core", "ops", "assets_store", "orchestration",
+                                                           "tests")
+                for p in (ROOT / folder).rglob("*.py") if (n := len(p.read_text().splitlines())) > 400}
+    assert not too_long, f"split these by what they hold: {too_long}"
+
+
+def test_the_engine_and_the_stages_never_import_the_command_line_or_the_reports() -> None:
+    for package in ("ops/engine", "ops/stages", "ops/config", "ops/intake"):
+        for path in (ROOT / package).rglob("*.py"):
+            modules = {node.module for node in ast.walk(ast.parse(path.read_text()))
+                       if isinstance(node, ast.ImportFrom) and node.module}
+            bad = {m for m in modules if m == "ops.cli" or m.startswith("ops.reporting")}
+            assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
