@@ -20,6 +20,7 @@ from ops.config.presets import PipelineConfig, preset
 from ops.engine.pipeline import PhotoOutcome, run_photo
 from ops.engine.priors import PriorsConfig, ProxySuite, build_suite
 from ops.engine.stage_ids import STAGE_IDS
+from ops.engine.store_layout import LAYOUT_FILE, LAYOUT_LOCK
 from tests.pipeline_helpers import DEVICE, PHOTOS, manifest, output_hashes, tiny_config
 
 KEY = "mug.jpg"
@@ -143,7 +144,8 @@ def test_unsafe_photo_names_map_to_safe_keys_inside_the_store(tmp_path: Path, ca
     out = tmp_path / "store"
     assert main(["run", str(photos), "--out", str(out), "--until", "reference", "--set", "device=cpu"]) == 0
     table = capsys.readouterr().out
-    keys = sorted(p.name for p in out.iterdir() if p.name != CATALOG_DIR)  # the catalog sits beside the photos
+    beside = {CATALOG_DIR, LAYOUT_FILE, LAYOUT_LOCK}  # the catalog and the layout marker sit beside the photos
+    keys = sorted(p.name for p in out.iterdir() if p.name not in beside)
     assert len(keys) == len(names)
     for key in keys:
         assert key[0] not in ".-" and ".." not in key and "," not in key and " " not in key and key.isascii()

@@ -9,12 +9,24 @@ The backward is written by hand: the table gradient is a single ``index_add_`` (
 gather backward would build a dense (N·L·8, F) intermediate and scatter it), and the input
 gradient is the analytic derivative of the trilinear weights — the texture field needs it to
 pass colour gradients on to mesh vertices.
+
+Kernels: on CUDA the encode runs as fused Triton kernels (``hashgrid_triton``: one gather pass per
+level in registers, table gradient by atomics, the same arithmetic as the code here), when Triton
+imports; otherwise (and for float64 inputs) the pure tensor functions below, compiled on CUDA
+(``compiled_for``). The CPU always runs the eager code below, unchanged. The environment variable
+``MORPHEUS_HASHGRID`` picks: ``auto`` (the default: Triton on CUDA where available), ``triton``
+(insist: an error where Triton cannot run, e.g. a CPU without ``TRITON_INTERPRET=1``), ``eager``
+(the tensor code everywhere: debugging, the benchmarks' "before"). It is an environment variable,
+not a config field, because it does not change results beyond float rounding and a config field
+would change the config hashes of existing stores.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from types import ModuleType
 
 import torch
 from torch import Tensor, nn
@@ -177,21 +189,56 @@ def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask:
     return grad_x, grad_table
 
 
+BACKEND_ENV = "MORPHEUS_HASHGRID"
+_BACKENDS = ("auto", "triton", "eager")
+
+
+def _triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
+    """The Triton kernel module when this encode should use it (see the module docstring), else None.
+
+    The CPU under ``auto`` and ``eager`` never imports it (nor Triton): its path stays the eager code.
+    """
+    choice = os.environ.get(BACKEND_ENV) or "auto"
+    if choice not in _BACKENDS:
+        raise ValueError(f"{BACKEND_ENV} must be one of {', '.join(_BACKENDS)}; got {choice!r}")
+    if choice == "eager" or (choice == "auto" and x.device.type != "cuda"):
+        return None
+    from morpheus_core.geometry import hashgrid_triton
+
+    if not hashgrid_triton.supports(x, table):
+        return None  # float64 (gradcheck) or an unsupported width: the tensor code, under either choice
+    if hashgrid_triton.triton_available() and (x.device.type == "cuda" or hashgrid_triton.interpreting()):
+        return hashgrid_triton
+    if choice == "triton":
+        reason = "triton is not installed" if hashgrid_triton.triton is None else (
+            f"Triton needs a CUDA device (or TRITON_INTERPRET=1 for its CPU interpreter), got {x.device}")
+        raise RuntimeError(f"{BACKEND_ENV}=triton but the Triton hash-grid kernels cannot run here: {reason}; "
+                           f"set {BACKEND_ENV}=auto or eager")
+    return None
+
+
 class _HashEncode(torch.autograd.Function):
-    """Forward and backward are pure tensor functions, compiled on CUDA (``compiled_for``)."""
+    """Fused Triton kernels on CUDA, else pure tensor functions, compiled on CUDA (``compiled_for``)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(x, table, level_mask)
         ctx.tables = tables
+        ctx.kernels = kernels = _triton_kernels(x, table)  # the backward uses the forward's choice
+        if kernels is not None:
+            return kernels.encode_forward(x, table, tables, level_mask)
         return compiled_for(_encode, x.device)(x, table, tables, level_mask)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, Tensor | None, None, None]:  # type: ignore[override]
         x, table, level_mask = ctx.saved_tensors
-        kernel = compiled_for(_encode_backward, x.device)
-        grad_x, grad_table = kernel(x, table, ctx.tables, level_mask, grad_out.contiguous(),
-                                    bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1]))
+        want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
+        if ctx.kernels is not None:
+            grad_x, grad_table = ctx.kernels.encode_backward(x, table, ctx.tables, level_mask, grad_out.contiguous(),
+                                                             want_x, want_table)
+        else:
+            kernel = compiled_for(_encode_backward, x.device)
+            grad_x, grad_table = kernel(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
         return grad_x, grad_table, None, None
 
 

@@ -48,14 +48,13 @@ def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
     pending: list[tuple[PhotoRun, PlannedStage]] = []
     for run in runs:
         try:
-            spec = run.spec(stage)
-            fp = run.fingerprint(stage, spec)
-            if run.cached(stage, fp) is not None:
+            planned = run.planned(stage)
+            if run.cached(planned) is not None:
                 continue
-            if spec.start is None:
-                run.execute(stage, spec, fp)
+            if planned.work.start is None:
+                run.execute(planned)
             else:
-                pending.append((run, spec, fp))
+                pending.append((run, planned))
         except Exception as exc:
             run.fail(stage, exc)
     if len(pending) == 1:

@@ -39,6 +39,7 @@ log = logging.getLogger("morpheus3d")
 
 LAYOUT = 2
 LAYOUT_FILE = ".layout.json"
+LAYOUT_LOCK = ".layout.lock"
 OLD_IDS = {new: old for old, new in RENAMED_STAGES.items()}
 # What layout 1 ran its LoRA with besides rank and learning rate (``LoraSettings``' defaults then).
 LAYOUT1_LORA = {"alpha": 4.0, "target_modules": ["to_q", "to_k", "to_v", "to_out.0"], "betas": [0.9, 0.999]}
@@ -130,7 +131,7 @@ def open_store(root: Path | str) -> Store:
     if store.root.is_dir() and layout_of(store.root) == LAYOUT and (store.root / LAYOUT_FILE).is_file():
         return store
     store.root.mkdir(parents=True, exist_ok=True)
-    fd = os.open(store.root / ".layout.lock", os.O_RDWR | os.O_CREAT, 0o666)
+    fd = os.open(store.root / LAYOUT_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)  # another process migrating: wait for it, then find it done
         if layout_of(store.root) < LAYOUT:

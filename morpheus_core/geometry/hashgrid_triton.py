@@ -1,0 +1,366 @@
+"""Fused Triton kernels for the hash-grid encoding: forward and hand-written backward.
+
+Same conventions and the same call signatures as ``_encode`` / ``_encode_backward`` in
+``hashgrid.py`` (the eager PyTorch code, which stays the CPU path and the reference): per level,
+pos = x·float32(scale) + 0.5, cell = floor(pos), frac = pos − cell; dense levels index
+x + y·res + z·res², hashed levels xor the coordinates times (1, 2654435761, 805459861) in uint32;
+every index modulo the level's rows plus its row offset; trilinear weights ((w_z·w_y)·w_x, in the
+eager code's order); the level mask multiplies features and gradients.
+
+Where the eager code materialises (N, L, 8) index, weight and gathered-feature tensors, these
+kernels keep one point's 8 corners in registers: the forward reads x once per level and writes the
+(N, L·F) features; the backward scatters the table gradient with atomics and sums the analytic
+input gradient Σ_corners (table[corner]·g)·∂w/∂pos·scale over the levels in registers.
+
+Arithmetic: float32 inputs (fp16/bf16 tables are upcast inside, accumulation is fp32), with FMA
+contraction switched off (``enable_fp_fusion=False``) so that x·scale + 0.5 rounds twice exactly as
+the eager fp32 code does: the same cells, the same fractions, results equal to ~1e-6 relative
+(only the summation order of the 8 corners and of the atomics differs). Integer indices are int32
+(dense) and uint32 (hashed), as in tcnn: exact for inputs in [−1, 2] (``HashGrid`` clamps to [0, 1]).
+
+Triton reads ``TRITON_INTERPRET`` when ``@triton.jit`` runs, i.e. when this module is imported:
+``hashgrid.py`` imports it lazily (only on CUDA, or when ``MORPHEUS_HASHGRID=triton``), and the CPU
+tests set ``TRITON_INTERPRET=1`` before importing it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import weakref
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+try:
+    import triton
+    import triton.language as tl
+
+    _jit: Any = triton.jit
+except ImportError:  # CPU installs without Triton: triton_available() is False, nothing is launched
+    triton = None
+    tl = None
+
+    def _jit(fn: Any) -> Any:
+        return fn
+
+
+if TYPE_CHECKING:
+    from morpheus_core.geometry.hashgrid import _LevelTables
+
+_BLOCK = 128  # points per program: 4 warps of 32 threads, one point per thread
+_NUM_WARPS = 4
+SUPPORTED_FEATURES = (1, 2, 4, 8)
+SUPPORTED_TABLE_DTYPES = (torch.float32, torch.float16, torch.bfloat16)
+
+
+def interpreting() -> bool:
+    """Whether Triton runs its CPU interpreter (``TRITON_INTERPRET=1``) instead of compiling."""
+    return os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
+def triton_available() -> bool:
+    """Triton imports and can run here: a CUDA device is present, or the interpreter is on."""
+    return triton is not None and (torch.cuda.is_available() or interpreting())
+
+
+def supports(x: Tensor, table: Tensor) -> bool:
+    """Whether these kernels take these inputs (fp32 points; fp32/fp16/bf16 tables of 1, 2, 4 or 8 features)."""
+    return (x.dtype == torch.float32 and table.dtype in SUPPORTED_TABLE_DTYPES
+            and table.dim() == 2 and table.shape[1] in SUPPORTED_FEATURES)
+
+
+# ---------------------------------------------------------------------------------------------
+# Kernels. Grid: a 2-D grid (blocks of points) × (levels), as tcnn's kernel_grid does, for the
+# forward and for the table-only backward. One level per program multiplies the parallelism by L
+# (2^16 points make 512 blocks, ×16 levels ≈ 8k programs to hide the gathers' latency), makes the
+# level's constants and its dense-vs-hashed choice uniform per program (a compile-time branch, no
+# divergence, no modulo computed twice), and keeps the programs that run together on one level's
+# slice of the table, which then sits in L2. When the input gradient is wanted, the backward
+# instead loops over the levels inside one program per block of points: grad_x sums over levels,
+# and accumulating it in registers is deterministic and needs neither an (L, N, 3) buffer nor
+# atomics on grad_x.
+# ---------------------------------------------------------------------------------------------
+
+
+@_jit
+def _level_frame(x0, x1, x2, scale):
+    """Integer cell and fraction per axis: pos = x·scale + 0.5 (two roundings, no FMA)."""
+    p0 = x0 * scale + 0.5
+    p1 = x1 * scale + 0.5
+    p2 = x2 * scale + 0.5
+    b0 = tl.floor(p0)
+    b1 = tl.floor(p1)
+    b2 = tl.floor(p2)
+    return b0.to(tl.int32), b1.to(tl.int32), b2.to(tl.int32), p0 - b0, p1 - b1, p2 - b2
+
+
+@_jit
+def _corner_row(c0, c1, c2, res, rows, offset, CORNER: tl.constexpr, HASHED: tl.constexpr):
+    """Flat table row of corner CORNER = bx + 2·by + 4·bz of the cells (c0, c1, c2)."""
+    cx = c0 + (CORNER & 1)
+    cy = c1 + ((CORNER >> 1) & 1)
+    cz = c2 + ((CORNER >> 2) & 1)
+    if HASHED:
+        # uint32 products wrap exactly like tcnn's (and like the eager int64 product & 0xFFFFFFFF).
+        h = cx.to(tl.uint32) ^ (cy.to(tl.uint32) * 2654435761) ^ (cz.to(tl.uint32) * 805459861)
+        row = (h % rows.to(tl.uint32)).to(tl.int64)
+    else:
+        d = cx + cy * res + cz * (res * res)
+        d = d % rows
+        row = tl.where(d < 0, d + rows, d).to(tl.int64)  # floor modulo, as torch.remainder
+    return row + offset
+
+
+@_jit
+def _axis_weights(f0, f1, f2, CORNER: tl.constexpr):
+    """Per-axis trilinear weights of corner CORNER: the upper corner's f, the lower's 1 − f."""
+    if CORNER & 1:
+        wx = f0
+    else:
+        wx = 1 - f0
+    if (CORNER >> 1) & 1:
+        wy = f1
+    else:
+        wy = 1 - f1
+    if (CORNER >> 2) & 1:
+        wz = f2
+    else:
+        wz = 1 - f2
+    return wx, wy, wz
+
+
+@_jit
+def _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
+                   F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
+    scale = tl.load(scale_ptr + level)
+    res = tl.load(res_ptr + level)
+    rows = tl.load(rows_ptr + level)
+    offset = tl.load(offset_ptr + level)
+    m = tl.load(mask_ptr + level)
+    c0, c1, c2, f0, f1, f2 = _level_frame(x0, x1, x2, scale)
+    # A masked level reads nothing: its features are 0. (m is broadcast first: the interpreter cannot
+    # `&` a scalar bool with a block.)
+    active = valid & ((tl.zeros([BLOCK], dtype=tl.float32) + m) != 0.0)
+    feats = tl.arange(0, F)
+    acc = tl.zeros([BLOCK, F], dtype=tl.float32)
+    for corner in tl.static_range(8):
+        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED)
+        wx, wy, wz = _axis_weights(f0, f1, f2, corner)
+        w = (wz * wy) * wx
+        vals = tl.load(table_ptr + row[:, None] * F + feats[None, :], mask=active[:, None], other=0.0)
+        acc += vals.to(tl.float32) * w[:, None]
+    return acc * m
+
+
+@_jit
+def _forward_kernel(x_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                    n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr):
+    level = tl.program_id(1)
+    offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
+    valid = offs < n_points
+    x0 = tl.load(x_ptr + offs * 3, mask=valid, other=0.0)
+    x1 = tl.load(x_ptr + offs * 3 + 1, mask=valid, other=0.0)
+    x2 = tl.load(x_ptr + offs * 3 + 2, mask=valid, other=0.0)
+    if level < n_dense:  # dense levels are a prefix of the levels: uniform per program
+        acc = _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                             level, F, BLOCK, False)
+    else:
+        acc = _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                             level, F, BLOCK, True)
+    feats = tl.arange(0, F)
+    ptrs = out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
+    tl.store(ptrs, acc.to(out_ptr.dtype.element_ty), mask=valid[:, None])
+
+
+@_jit
+def _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+                    rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr, BLOCK: tl.constexpr,
+                    HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
+    """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution."""
+    scale = tl.load(scale_ptr + level)
+    res = tl.load(res_ptr + level)
+    rows = tl.load(rows_ptr + level)
+    offset = tl.load(offset_ptr + level)
+    m = tl.load(mask_ptr + level)
+    c0, c1, c2, f0, f1, f2 = _level_frame(x0, x1, x2, scale)
+    active = valid & ((tl.zeros([BLOCK], dtype=tl.float32) + m) != 0.0)  # masked level: scatters nothing
+    feats = tl.arange(0, F)
+    g_ptrs = grad_out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
+    g = tl.load(g_ptrs, mask=active[:, None], other=0.0).to(tl.float32) * m
+    d0 = tl.zeros([BLOCK], dtype=tl.float32)
+    d1 = tl.zeros([BLOCK], dtype=tl.float32)
+    d2 = tl.zeros([BLOCK], dtype=tl.float32)
+    for corner in tl.static_range(8):
+        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED)
+        wx, wy, wz = _axis_weights(f0, f1, f2, corner)
+        row_ptrs = row[:, None] * F + feats[None, :]
+        if WANT_TABLE:
+            # Atomics contend where many points share a row: on the dense (coarse) levels every
+            # cell is hit by many points of a block (level 0 has 16^3 rows for 2^18 points), while
+            # hashed rows are nearly unique. Next steps: per-block partial sums of the dense levels
+            # in shared memory, or sorting the points by cell and reducing runs before the atomic.
+            w = (wz * wy) * wx
+            tl.atomic_add(grad_table_ptr + row_ptrs, g * w[:, None], mask=active[:, None], sem="relaxed")
+        if WANT_X:
+            vals = tl.load(table_ptr + row_ptrs, mask=active[:, None], other=0.0).to(tl.float32)
+            dot = tl.sum(vals * g, axis=1)
+            # ∂w/∂f_d: axis d's slope (∓1) times the other two axes' weights.
+            if corner & 1:
+                d0 += dot * (wz * wy)
+            else:
+                d0 -= dot * (wz * wy)
+            if (corner >> 1) & 1:
+                d1 += dot * (wz * wx)
+            else:
+                d1 -= dot * (wz * wx)
+            if (corner >> 2) & 1:
+                d2 += dot * (wy * wx)
+            else:
+                d2 -= dot * (wy * wx)
+    return d0 * scale, d1 * scale, d2 * scale
+
+
+@_jit
+def _backward_kernel(x_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr, scale_ptr, res_ptr, rows_ptr,
+                     offset_ptr, mask_ptr, n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr,
+                     WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
+    offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
+    valid = offs < n_points
+    x0 = tl.load(x_ptr + offs * 3, mask=valid, other=0.0)
+    x1 = tl.load(x_ptr + offs * 3 + 1, mask=valid, other=0.0)
+    x2 = tl.load(x_ptr + offs * 3 + 2, mask=valid, other=0.0)
+    if WANT_X:  # grid (blocks, 1): every level in this program, grad_x summed in registers
+        g0 = tl.zeros([BLOCK], dtype=tl.float32)
+        g1 = tl.zeros([BLOCK], dtype=tl.float32)
+        g2 = tl.zeros([BLOCK], dtype=tl.float32)
+        for level in range(0, n_dense):
+            d0, d1, d2 = _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
+                                         scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                                         F, BLOCK, False, WANT_X, WANT_TABLE)
+            g0 += d0
+            g1 += d1
+            g2 += d2
+        for level in range(n_dense, n_levels):
+            d0, d1, d2 = _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
+                                         scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                                         F, BLOCK, True, WANT_X, WANT_TABLE)
+            g0 += d0
+            g1 += d1
+            g2 += d2
+        out_ty = grad_x_ptr.dtype.element_ty
+        tl.store(grad_x_ptr + offs * 3, g0.to(out_ty), mask=valid)
+        tl.store(grad_x_ptr + offs * 3 + 1, g1.to(out_ty), mask=valid)
+        tl.store(grad_x_ptr + offs * 3 + 2, g2.to(out_ty), mask=valid)
+    else:  # grid (blocks, levels): the table gradient alone, one level per program
+        level = tl.program_id(1)
+        if level < n_dense:
+            _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+                            rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, False, False, WANT_TABLE)
+        else:
+            _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+                            rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, True, False, WANT_TABLE)
+
+
+# ---------------------------------------------------------------------------------------------
+# Host side.
+# ---------------------------------------------------------------------------------------------
+
+class _Constants:
+    """The per-level constants as the kernels read them (device tensors, built once per _LevelTables)."""
+
+    def __init__(self, tables: _LevelTables) -> None:
+        self.scale = tables.scale.to(torch.float32).contiguous()  # = the eager fp32 path's scale.to(x.dtype)
+        self.res = tables.strides[:, 1].to(torch.int32).contiguous()
+        self.rows = tables.rows.to(torch.int32).contiguous()
+        self.offsets = tables.offsets.to(torch.int64).contiguous()
+        self.n_levels = int(tables.rows.shape[0])
+        self.n_dense = int(tables.n_dense)
+
+
+_constants: weakref.WeakKeyDictionary[Any, _Constants] = weakref.WeakKeyDictionary()
+
+
+def _constants_for(tables: _LevelTables) -> _Constants:
+    consts = _constants.get(tables)
+    if consts is None:
+        consts = _constants[tables] = _Constants(tables)
+    return consts
+
+
+def _check(x: Tensor, table: Tensor, tables: _LevelTables) -> _Constants:
+    if triton is None:
+        raise RuntimeError("the hash-grid Triton kernels need the triton package")
+    if not supports(x, table):
+        raise ValueError(f"hash-grid Triton kernels take float32 points and a float32/float16/bfloat16 table "
+                         f"of {SUPPORTED_FEATURES} features; got x {x.dtype}, table {table.dtype} "
+                         f"{tuple(table.shape)}")
+    if x.dim() != 2 or x.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {tuple(x.shape)}")
+    if x.device != table.device:
+        raise ValueError(f"points on {x.device} but table on {table.device}")
+    if x.device.type != "cuda" and type(_forward_kernel).__name__ != "InterpretedFunction":
+        raise RuntimeError("hash-grid Triton kernels on a non-CUDA device need Triton's interpreter: set "
+                           "TRITON_INTERPRET=1 before morpheus_core.geometry.hashgrid_triton is imported")
+    consts = _constants_for(tables)
+    if consts.scale.device != x.device:
+        raise ValueError(f"level tables on {consts.scale.device} but points on {x.device}")
+    return consts
+
+
+def _launch_options() -> dict[str, Any]:
+    # No FMA contraction: x·scale + 0.5 must round like the eager code's separate multiply and add.
+    return {"num_warps": _NUM_WARPS, "enable_fp_fusion": False}
+
+
+def _device_guard(x: Tensor) -> Any:
+    return torch.cuda.device(x.device) if x.device.type == "cuda" else contextlib.nullcontext()
+
+
+def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:
+    """(N, 3) points → (N, L·F) features in the table's dtype; as ``hashgrid._encode``."""
+    consts = _check(x, table, tables)
+    x = x.contiguous()
+    table = table.contiguous()
+    mask = level_mask.to(device=x.device, dtype=torch.float32).contiguous()
+    n, n_features = x.shape[0], table.shape[1]
+    out = torch.empty((n, consts.n_levels * n_features), dtype=table.dtype, device=x.device)
+    if n == 0:
+        return out
+    grid = (triton.cdiv(n, _BLOCK), consts.n_levels)
+    with _device_guard(x):
+        _forward_kernel[grid](x, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
+                              n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK, **_launch_options())
+    return out
+
+
+def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, grad_out: Tensor,
+                    want_x: bool, want_table: bool) -> tuple[Tensor | None, Tensor | None]:
+    """(grad_x, grad_table), each None unless wanted; as ``hashgrid._encode_backward``."""
+    consts = _check(x, table, tables)
+    if not (want_x or want_table):
+        return None, None
+    x = x.contiguous()
+    table = table.contiguous()
+    mask = level_mask.to(device=x.device, dtype=torch.float32).contiguous()
+    n, n_features = x.shape[0], table.shape[1]
+    if grad_out.shape != (n, consts.n_levels * n_features):
+        raise ValueError(f"grad_out must be {(n, consts.n_levels * n_features)}, got {tuple(grad_out.shape)}")
+    grad_out = grad_out.contiguous()
+    # fp32 accumulation buffer for the atomics, whatever the table's dtype.
+    grad_table = torch.zeros(table.shape, dtype=torch.float32, device=x.device) if want_table else None
+    grad_x = torch.zeros((n, 3), dtype=x.dtype, device=x.device) if want_x else None
+    if n > 0:
+        blocks = triton.cdiv(n, _BLOCK)
+        grid = (blocks, 1) if want_x else (blocks, consts.n_levels)
+        # Unwanted outputs: any valid pointer of the right dtype (the constexpr flags drop their code).
+        gt = grad_table if grad_table is not None else x
+        gx = grad_x if grad_x is not None else x
+        with _device_guard(x):
+            _backward_kernel[grid](x, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows, consts.offsets,
+                                   mask, n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
+                                   WANT_X=bool(want_x), WANT_TABLE=bool(want_table), **_launch_options())
+    if grad_table is not None and grad_table.dtype != table.dtype:
+        grad_table = grad_table.to(table.dtype)
+    return grad_x, grad_table

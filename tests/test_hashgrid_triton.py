@@ -1,0 +1,231 @@
+"""Triton hash-grid kernels against the eager encoder (``_encode`` / ``_encode_backward``).
+
+Without CUDA the kernels run under Triton's CPU interpreter. Triton reads ``TRITON_INTERPRET``
+when ``@triton.jit`` runs — when ``hashgrid_triton`` is imported — so it is set before that import.
+With CUDA the same tests run the compiled kernels on the GPU.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+
+from morpheus_core.geometry.hashgrid import (
+    BACKEND_ENV,
+    HashGrid,
+    HashGridConfig,
+    _encode,
+    _encode_backward,
+    _LevelTables,
+    _triton_kernels,
+)
+
+CUDA = torch.cuda.is_available()
+if not CUDA:
+    os.environ["TRITON_INTERPRET"] = "1"
+pytest.importorskip("triton")
+
+from morpheus_core.geometry import hashgrid_triton  # noqa: E402  (after TRITON_INTERPRET)
+
+DEVICE = torch.device("cuda" if CUDA else "cpu")
+
+
+def mixed(features: int) -> HashGridConfig:
+    """Levels of resolution 2, 4, 6 stored densely (8, 64, 216 rows), 9 and 14 hashed (256 rows)."""
+    return HashGridConfig(n_levels=5, n_features_per_level=features, log2_table_size=8, base_resolution=2,
+                          per_level_scale=1.6)
+
+
+def integer_scales(features: int) -> HashGridConfig:
+    """Scales 1, 3, 7, 15 (res 2, 4, 8, 16): x = 1 puts the upper corner one past the grid, where it wraps."""
+    return HashGridConfig(n_levels=4, n_features_per_level=features, log2_table_size=7, base_resolution=2,
+                          per_level_scale=2.0)
+
+
+SPECIAL = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.5], [0.0, 1.0, 1.0], [0.5, 0.5, 0.5], [0.25, 1.0, 0.0]]
+
+
+def inputs(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, _LevelTables]:
+    g = torch.Generator().manual_seed(seed)
+    tables = _LevelTables(config, DEVICE)
+    table = torch.randn(int(tables.rows.sum()), config.n_features_per_level, generator=g)
+    x = torch.rand(n, 3, generator=g)
+    x[: len(SPECIAL)] = torch.tensor(SPECIAL)
+    return x.to(DEVICE), table.to(DEVICE), tables
+
+
+def assert_near(got: torch.Tensor | None, want: torch.Tensor | None, rel: float) -> None:
+    assert got is not None and want is not None
+    assert got.shape == want.shape and got.dtype == want.dtype and got.device == want.device
+    err = float((got.double() - want.double()).abs().max()) if got.numel() else 0.0
+    scale = max(1.0, float(want.abs().max())) if want.numel() else 1.0
+    assert err <= rel * scale, f"max abs error {err:.3g} > {rel:g} × {scale:.3g}"
+
+
+def compare(config: HashGridConfig, level_mask: torch.Tensor, n: int = 160, seed: int = 0) -> None:
+    x, table, tables = inputs(config, n, seed)
+    mask = level_mask.to(DEVICE)
+    ref = _encode(x, table, tables, mask)
+    out = hashgrid_triton.encode_forward(x, table, tables, mask)
+    assert_near(out, ref, 2e-6)
+    grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(seed + 1)).to(DEVICE)
+    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True)
+    got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True)
+    assert_near(got_gx, want_gx, 2e-6)
+    assert_near(got_gt, want_gt, 2e-6)
+    # The table-only backward runs another grid (one level per program): the same gradient.
+    none_x, only_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, False, True)
+    assert none_x is None
+    assert_near(only_gt, want_gt, 2e-6)
+
+
+@pytest.mark.parametrize(("make", "features"), [(mixed, 2), (mixed, 4), (integer_scales, 2), (integer_scales, 4),
+                                                (mixed, 1), (integer_scales, 8)])
+def test_forward_and_gradients_match_eager(make, features: int) -> None:
+    config = make(features)
+    tables = _LevelTables(config, DEVICE)
+    assert 0 < tables.n_dense < config.n_levels  # both kinds of level occur
+    compare(config, torch.ones(config.n_levels), seed=features)
+
+
+def test_unit_cube_corners_wrap_like_eager() -> None:
+    """x = 0 and x = 1 on every axis: at integer scales the upper corner of x = 1 lies past the grid."""
+    config = integer_scales(2)
+    tables = _LevelTables(config, DEVICE)
+    corners = torch.tensor([[(c >> d) & 1 for d in range(3)] for c in range(8)], dtype=torch.float32)
+    g = torch.Generator().manual_seed(5)
+    table = torch.randn(int(tables.rows.sum()), 2, generator=g).to(DEVICE)
+    mask = torch.ones(config.n_levels, device=DEVICE)
+    x = corners.to(DEVICE)
+    assert_near(hashgrid_triton.encode_forward(x, table, tables, mask), _encode(x, table, tables, mask), 1e-6)
+    grad_out = torch.randn(8, config.output_dim, generator=g).to(DEVICE)
+    got = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True)
+    want = _encode_backward(x, table, tables, mask, grad_out, True, True)
+    for a, b in zip(got, want, strict=True):
+        assert_near(a, b, 1e-6)
+
+
+def test_masked_levels_are_zero_and_get_no_gradient() -> None:
+    config = mixed(2)
+    active = 3
+    mask = (torch.arange(config.n_levels) < active).float()
+    compare(config, mask, seed=7)
+    x, table, tables = inputs(config, 100, 8)
+    mask = mask.to(DEVICE)
+    out = hashgrid_triton.encode_forward(x, table, tables, mask)
+    assert torch.all(out[:, active * 2:] == 0) and torch.all(out[:, : active * 2] != 0)
+    _, grad_table = hashgrid_triton.encode_backward(x, table, tables, mask, torch.ones_like(out), False, True)
+    first_off = int(tables.offsets[active])
+    assert torch.all(grad_table[first_off:] == 0) and grad_table[:first_off].abs().sum() > 0
+
+
+@pytest.mark.parametrize(("want_x", "want_table"), [(True, False), (False, True), (False, False)])
+def test_unwanted_gradients_are_none(want_x: bool, want_table: bool) -> None:
+    config = mixed(2)
+    x, table, tables = inputs(config, 64, 9)
+    mask = torch.ones(config.n_levels, device=DEVICE)
+    grad_out = torch.randn(64, config.output_dim, generator=torch.Generator().manual_seed(10)).to(DEVICE)
+    got = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, want_x, want_table)
+    want = _encode_backward(x, table, tables, mask, grad_out, want_x, want_table)
+    for a, b, wanted in zip(got, want, (want_x, want_table), strict=True):
+        if wanted:
+            assert_near(a, b, 2e-6)
+        else:
+            assert a is None and b is None
+
+
+def test_half_precision_table_is_upcast() -> None:
+    config = mixed(2)
+    x, table, tables = inputs(config, 64, 11)
+    mask = torch.ones(config.n_levels, device=DEVICE)
+    half = table.to(torch.float16)
+    out = hashgrid_triton.encode_forward(x, half, tables, mask)
+    assert out.dtype == torch.float16
+    assert_near(out.float(), _encode(x, half.float(), tables, mask), 2e-3)
+    _, grad_table = hashgrid_triton.encode_backward(x, half, tables, mask, torch.ones_like(out), False, True)
+    assert grad_table is not None and grad_table.dtype == torch.float16
+
+
+def test_cpu_keeps_the_eager_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the CPU ``auto`` (the default) and ``eager`` never launch a Triton kernel, interpreter or not."""
+    x = torch.rand(50, 3)
+    grid = HashGrid(mixed(2), generator=torch.Generator().manual_seed(12))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a Triton kernel ran on the CPU path")
+
+    monkeypatch.setattr(hashgrid_triton, "encode_forward", refuse)
+    monkeypatch.setattr(hashgrid_triton, "encode_backward", refuse)
+    for choice in (None, "auto", "eager"):
+        if choice is None:
+            monkeypatch.delenv(BACKEND_ENV, raising=False)
+        else:
+            monkeypatch.setenv(BACKEND_ENV, choice)
+        assert _triton_kernels(x, grid.table) is None
+        xi = x.clone().requires_grad_(True)
+        grid(xi).sum().backward()
+        assert xi.grad is not None and grid.table.grad is not None
+    monkeypatch.setenv(BACKEND_ENV, "fast")
+    with pytest.raises(ValueError, match=BACKEND_ENV):
+        _triton_kernels(x, grid.table)
+
+
+def test_forcing_triton_where_it_cannot_run_names_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "0")
+    grid = HashGrid(mixed(2))
+    with pytest.raises(RuntimeError, match=f"{BACKEND_ENV}=triton"):
+        grid(torch.rand(10, 3))
+    # float64 (gradcheck) is not the kernels' business: the tensor code runs under either choice.
+    assert _triton_kernels(torch.rand(10, 3, dtype=torch.float64), grid.table.double()) is None
+
+
+@pytest.mark.skipif(CUDA, reason="the interpreter path is the CPU's")
+def test_forced_triton_through_hash_grid_module_under_the_interpreter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``MORPHEUS_HASHGRID=triton`` with the interpreter: ``HashGrid`` forward and autograd backward match eager."""
+    grid = HashGrid(mixed(2), generator=torch.Generator().manual_seed(13))
+    with torch.no_grad():
+        grid.table.normal_(generator=torch.Generator().manual_seed(14))
+    grid.set_active_levels(4)
+    x = torch.rand(100, 3, generator=torch.Generator().manual_seed(15))
+    w = torch.randn(100, grid.output_dim, generator=torch.Generator().manual_seed(16))
+
+    def run(choice: str) -> tuple[torch.Tensor, ...]:
+        monkeypatch.setenv(BACKEND_ENV, choice)
+        xi = x.clone().requires_grad_(True)
+        grid.table.grad = None
+        out = grid(xi)
+        (out * w).sum().backward()
+        return out.detach(), xi.grad, grid.table.grad.clone()
+
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    assert _triton_kernels(x, grid.table) is hashgrid_triton
+    for got, want in zip(run("triton"), run("eager"), strict=True):
+        assert_near(got, want, 2e-6)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not CUDA, reason="needs CUDA")
+@pytest.mark.parametrize("n", [1000, 37_123])
+def test_paper_grid_on_cuda_defaults_to_triton_and_matches_eager(n: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    grid = HashGrid(HashGridConfig(), generator=torch.Generator().manual_seed(n)).cuda()
+    with torch.no_grad():
+        grid.table.normal_(0, 0.1, generator=torch.Generator(device="cuda").manual_seed(1))
+    x = torch.rand(n, 3, generator=torch.Generator().manual_seed(n + 1)).cuda()
+    w = torch.randn(n, grid.output_dim, generator=torch.Generator().manual_seed(n + 2)).cuda()
+    monkeypatch.delenv(BACKEND_ENV, raising=False)
+    assert _triton_kernels(x, grid.table) is hashgrid_triton
+
+    def run(choice: str) -> tuple[torch.Tensor, ...]:
+        monkeypatch.setenv(BACKEND_ENV, choice)
+        monkeypatch.setenv("MORPHEUS_COMPILE", "0")
+        xi = x.clone().requires_grad_(True)
+        grid.table.grad = None
+        out = grid(xi)
+        (out * w).sum().backward()
+        return out.detach(), xi.grad, grid.table.grad.clone()
+
+    for got, want in zip(run("auto"), run("eager"), strict=True):
+        assert_near(got, want, 1e-5)
