@@ -37,6 +37,7 @@ import torch
 from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
+from morpheus_core.geometry.hashgrid import BACKEND_ENV
 from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
@@ -185,7 +186,8 @@ def to_markdown(res: dict) -> str:
     sched = res["schedule"]
     lines = [f"# Paper schedule speed, mode `{res['mode']}` — {res['device']}, {res['date']}", "",
              f"torch {res['torch']}; full-size prior architectures with random weights ({res['scale']}); "
-             f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}; "
+             f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}, hash-grid kernels "
+             f"`{res.get('hashgrid', 'auto')}` ({BACKEND_ENV}); "
              f"{res['warmup']} warm-up + {res['steps']} timed steps per row (mean); schedule "
              f"{sched['nerf']} + {sched['dmtet']} + {sched['texture']} steps. "
              f"Command: `{res['command']}`.", "",
@@ -250,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     def write() -> str:  # after every row: a call cut short by its time limit keeps what it measured
         res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
                "mode": args.mode, "accel": accel, "compiled": dev.type == "cuda" and mode["compile"] == "1",
+               "hashgrid": os.environ.get(BACKEND_ENV) or "auto",
                "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
                "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
                "wall_s": round(time.perf_counter() - t_start, 1),
