@@ -16,6 +16,7 @@ import io
 import os
 import re
 import struct
+import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -23,15 +24,16 @@ from typing import Any
 
 import torch
 
-from assets_store.atomic import atomic_write_bytes
+from assets_store.atomic import HOST, atomic_write_bytes
 from assets_store.fsutil import fsync_dir, pid_alive
 
 MAGIC = b"M3DCKPT1"
 _LENGTH = struct.Struct("<Q")
 HEADER_SIZE = len(MAGIC) + _LENGTH.size + 32
 _STEP_FILE = re.compile(r"step-(\d{9,})\.ckpt")
-# atomic_write's temporaries: ".<name>.<pid>.tmp"
-_TEMP_FILE = re.compile(r"\.step-\d{9,}\.ckpt\.(\d+)\.tmp")
+# atomic_write's temporaries: ".<name>.<host>.<pid>.tmp" (".<name>.<pid>.tmp" before hosts were named)
+_TEMP_FILE = re.compile(r"\.step-\d{9,}\.ckpt\.(?:(?P<host>[A-Za-z0-9-]+)\.)?(?P<pid>\d+)\.tmp")
+_ABANDONED_S = 3600.0  # a temporary of another host this old was left by a killed writer (a save takes seconds)
 
 
 class CheckpointError(RuntimeError):
@@ -197,9 +199,18 @@ class Checkpoints:
                 self._set_aside(path, "header does not match the file size")
             else:
                 path.unlink(missing_ok=True)
-        # Temporaries of killed writers would otherwise pile up beside the checkpoints.
+        # Temporaries of killed writers would otherwise pile up beside the checkpoints. A process id
+        # is judged only on its own host; another host's temporary is left alone until it is old.
+        now = time.time()
         for path in self.directory.iterdir():
             match = _TEMP_FILE.fullmatch(path.name)
-            if match is not None and not pid_alive(int(match[1])):
+            if match is None:
+                continue
+            here = match["host"] in (None, HOST)
+            try:
+                old = now - path.stat().st_mtime > _ABANDONED_S
+            except FileNotFoundError:
+                continue
+            if (here and not pid_alive(int(match["pid"]))) or old:
                 path.unlink(missing_ok=True)
 

@@ -21,12 +21,13 @@ import re
 import secrets
 import shutil
 import stat
+import time
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
 
 from assets_store.atomic import atomic_write_text
-from assets_store.fsutil import fsync_dir, lock_held, pid_alive, try_lock
+from assets_store.fsutil import fsync_dir, lock_held, try_lock
 from assets_store.hashing import file_sha256
 from assets_store.keys import UnsafeKeyError, check_key, is_safe_key
 from assets_store.manifest import MANIFEST_FILE, FileRecord, Fingerprint, Manifest
@@ -39,6 +40,7 @@ CATALOG_DIR = ".catalog"
 _STAGE_NAME = re.compile(r"[a-z0-9_]{1,64}")
 _STAGING_NAME = re.compile(r"(?P<stage>[a-z0-9_]+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]+)(?P<old>\.old)?")
 _CHUNK = 1 << 20
+LOCKLESS_STALE_S = 24 * 3600.0  # a lockless staging folder this old has no writer (a stage writes within hours)
 _SWAP_ATTEMPTS = 5
 
 
@@ -128,10 +130,10 @@ class Store:
         except OSError:
             return False
 
-    def lookup(self, key: str, stage: str, fingerprint: Fingerprint) -> Manifest | None:
-        """The finished output's manifest when it is valid and was made from exactly ``fingerprint``."""
+    def lookup(self, key: str, stage: str, *fingerprints: Fingerprint) -> Manifest | None:
+        """The finished output's manifest when it is valid and was made from exactly one of ``fingerprints``."""
         manifest = self.read_manifest(key, stage)
-        if manifest is None or manifest.fingerprint != fingerprint:
+        if manifest is None or manifest.fingerprint not in fingerprints:
             return None
         return manifest
 
@@ -148,8 +150,9 @@ class Store:
 
         A writer holds an ``flock`` on ``<folder>.lock`` beside its folder while it writes, so
         liveness holds across hosts on shared storage (a process id means nothing on another
-        host) and a killed writer's folder is free at once. Folders from before these locks fall
-        back to their process id. A name that does not parse is left alone (not ours to judge).
+        host) and a killed writer's folder is free at once. A folder without a lock (written before
+        these locks) is judged by age: gone once untouched for ``LOCKLESS_STALE_S``. A name that does
+        not parse is left alone (not ours to judge).
         """
         staging = self.staging_root(key)
         removed: list[Path] = []
@@ -162,7 +165,7 @@ class Store:
             if match is None:
                 continue
             lock = staging / (entry.name.removesuffix(".old") + LOCK_SUFFIX)
-            alive = lock_held(lock) if lock.exists() else pid_alive(int(match["pid"]))
+            alive = lock_held(lock) if lock.exists() else _recent(entry, LOCKLESS_STALE_S)
             if alive:
                 continue
             if entry.is_symlink() or not entry.is_dir():
@@ -305,3 +308,11 @@ class StageWriter:
             fsync_dir(parent)
             return
         raise OSError(f"could not move the staging folder into {target}: another writer keeps replacing it")
+
+
+def _recent(path: Path, seconds: float) -> bool:
+    """Whether ``path`` was modified within the last ``seconds`` (False when it is gone)."""
+    try:
+        return time.time() - path.lstat().st_mtime < seconds
+    except FileNotFoundError:
+        return False

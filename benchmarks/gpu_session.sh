@@ -9,6 +9,7 @@
 #   e.g. "before:1 after:1,4"; carry outputs/gpu_refs (prepared on the CPU machine:
 #   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
 #   SPEED_TESTS=1 first runs the CUDA tests of the speed work. Results and profiles -> $OUT.
+# early_stop: benchmarks/early_stop.py on CUDA (ES_SCHEDULES, ES_SCENES, ES_JOBS, ES_NAME), results -> $OUT.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 set -uo pipefail
@@ -19,6 +20,17 @@ pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 export PYTHONPATH=/tmp/site:. HF_HUB_OFFLINE=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt"
 python -c "import torch, diffusers, transformers, peft; print(torch.__version__, diffusers.__version__, transformers.__version__, peft.__version__)" >> "$out/gpu.txt"
+if [ "$mode" = early_stop ]; then
+  # ES_SCHEDULES / ES_SCENES / ES_JOBS pick the cells; records are appended as they finish, so a
+  # call cut short by its time limit still brings back what it finished (--from-records merges).
+  name=${ES_NAME:-early_stop_h200}
+  [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"  # go on from it
+  timeout "${ES_TIMEOUT:-540}" python -m benchmarks.early_stop --device cuda --jobs "${ES_JOBS:-8}" \
+    --schedules "${ES_SCHEDULES:-draft}" --scenes "${ES_SCENES:-mug,bottle,box,vase,sneaker,lamp,chair,figure}" \
+    --seeds 0,1,2 --work /tmp/es --results "$out" --name "$name" > "$out/early_stop.log" 2>&1
+  echo "early_stop exit $?" >> "$out/early_stop.log"
+  exit 0
+fi
 if [ "$mode" = stages ]; then
   MORPHEUS_TEST_DEVICE=cuda timeout 300 python -m pytest -q -p no:cacheprovider tests/test_pipeline.py \
     tests/test_optimise.py -k "not unsafe_photo" > "$out/pytest_cuda_pipeline.log" 2>&1

@@ -57,7 +57,8 @@ def stage_metadata(outcome: StageOutcome, stage_dir: Path) -> dict[str, Any]:
         meta["plan"] = MetadataValue.json({k: _plain(v) for k, v in m.plan.items()})
     metrics = {k: _plain(v) for k, v in m.metrics.items() if isinstance(v, (int, float, str, bool)) or v is None}
     meta["metrics"] = MetadataValue.json(metrics)
-    for name in ("ref_psnr", "faces", "uv_coverage", "mask_iou", "steps_run", "resumed_from_step", "verdict"):
+    for name in ("ref_psnr", "faces", "uv_coverage", "mask_iou", "steps_run", "steps_saved", "resumed_from_step",
+                 "verdict"):
         value = m.metrics.get(name)
         if value is not None:
             meta[name] = _plain(value)

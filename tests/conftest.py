@@ -17,6 +17,14 @@ from tests.helpers import RES_2D
 from tests.tiny_models import write_all
 
 
+@pytest.fixture(autouse=True)
+def _subnormals_back() -> object:
+    # ``run_loop`` flushes subnormals process-wide (a CPU speed fix); a later test in the same process
+    # that draws IEEE floats (hypothesis refuses to without subnormals) needs them back.
+    yield
+    torch.set_flush_denormal(False)
+
+
 @pytest.fixture
 def device() -> torch.device:
     name = os.environ.get("MORPHEUS_TEST_DEVICE", "cpu")

@@ -42,6 +42,16 @@ def test_overrides_are_typed_and_checked() -> None:
             apply_overrides(cfg, [bad])
 
 
+def test_a_star_segment_sets_the_key_in_every_group() -> None:
+    cfg = preset("draft", ["*.loop.early_stop=false", "*.loop.early_stop_min_share=0.7"])
+    assert [s.loop.early_stop for s in (cfg.nerf, cfg.dmtet, cfg.texture)] == [False, False, False]
+    assert {s.loop.early_stop_min_share for s in (cfg.nerf, cfg.dmtet, cfg.texture)} == {0.7}
+    assert preset("draft", ["nerf.loop.early_stop=false"]).dmtet.loop.early_stop is True
+    for bad in ["*.loop.no_such_key=1", "*.*.*.*.*.*.*.*=1", "*.loop.early_stop=maybe"]:
+        with pytest.raises(ConfigError):
+            apply_overrides(cfg, [bad])
+
+
 def test_every_leaf_key_is_overridable() -> None:
     cfg = preset("draft")
     keys = flat_keys(cfg)

@@ -165,3 +165,17 @@ def test_a_killed_writer_is_cleaned_up_at_once(tmp_path: Path) -> None:
     proc.wait(timeout=30)
     assert store.cleanup_staging("photo.jpg") == [folder] and not folder.exists()
     assert not list(store_root.glob("photo.jpg/.staging/*"))  # its lock file went with it
+
+
+def test_a_staging_folder_without_a_lock_is_judged_by_age_not_by_process_id(tmp_path: Path) -> None:
+    store = Store(tmp_path / "store")
+    staging = store.staging_root("photo.jpg")
+    staging.mkdir(parents=True)
+    # From before the writer locks, by a process id that is dead here but may be alive on another host.
+    folder = staging / f"nerf.999999999.{os.urandom(8).hex()}"
+    folder.mkdir()
+    (folder / "half.bin").write_bytes(os.urandom(64))
+    assert store.cleanup_staging("photo.jpg") == [] and folder.is_dir()
+    old = time.time() - 2 * 24 * 3600
+    os.utime(folder, (old, old))
+    assert store.cleanup_staging("photo.jpg") == [folder] and not folder.exists()

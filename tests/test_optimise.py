@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ import torch
 from torch import nn
 
 from assets_store.checkpoints import Checkpoints
+from ops.engine.early_stop import converged
 from ops.engine.loop import BadStep, LoopConfig, StepOutput, run_loop
 
 
@@ -70,11 +72,16 @@ class Regression:
 
     def evaluate(self) -> dict[str, float]:
         with torch.no_grad():
-            return {"full_mse": float((self.net(self.x) - self.y).pow(2).mean())}
+            mse = float((self.net(self.x) - self.y).pow(2).mean())
+        return {"full_mse": mse, "fit_db": -10.0 * math.log10(max(mse, 1e-12))}
+
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig) -> bool:
+        return converged(history, done, config, "fit_db")
 
 
-def _run(task: Regression, steps: int, ckpt: Path | None, seed: int = 3, every: int = 5) -> Any:
-    return run_loop(task, LoopConfig(steps, checkpoint_every=every, log_every=1, grad_clip=None),
+def _run(task: Regression, steps: int, ckpt: Path | None, seed: int = 3, every: int = 5,
+         early_stop: bool = False) -> Any:
+    return run_loop(task, LoopConfig(steps, checkpoint_every=every, log_every=1, grad_clip=None, early_stop=early_stop),
                     torch.Generator().manual_seed(seed), "test", ckpt)
 
 

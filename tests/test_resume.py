@@ -56,9 +56,14 @@ def test_sigkill_at_a_random_step_then_resume_is_bit_identical(stage: str, unint
         shutil.copytree(uninterrupted.stage_dir(KEY, done), store.stage_dir(KEY, done))
     rng = random.Random(f"{stage}-{os.getpid()}")
     proc = subprocess.Popen(_command(store.root), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    # A random checkpoint (first to third of four), then a random moment up to a few steps later.
+    # A random checkpoint (first to third of four, before the step the stage stops at when its
+    # scene converges early), then a random moment up to a few steps later.
     loop = {"nerf": CFG.nerf.loop, "dmtet": CFG.dmtet.loop, "texture": CFG.texture.loop}.get(stage)
-    step = rng.randint(1, 3) * loop.checkpoint_every if loop else 0
+    step = 0
+    if loop:
+        metrics = uninterrupted.read_manifest(KEY, stage).metrics
+        reached = metrics["schedule_steps"] - metrics["steps_saved"]
+        step = rng.randint(1, max(1, min(3, (reached - 1) // loop.checkpoint_every))) * loop.checkpoint_every
     deadline = time.monotonic() + 300
     while not _reached(store, stage, step) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.002)

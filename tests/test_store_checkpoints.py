@@ -231,3 +231,21 @@ def test_sigkill_during_save_never_leaves_a_loadable_partial_file(tmp_path: Path
     # The killed writer's temporary (if any) is removed by the next save.
     ck.save(10**6, {"x": torch.zeros(1)})
     assert [p.name for p in folder.iterdir() if p.name.startswith(".")] == []
+
+
+def test_another_hosts_temporary_is_kept_until_it_is_old(tmp_path: Path) -> None:
+    from assets_store.atomic import HOST
+
+    ck = Checkpoints(tmp_path)
+    dead = 999_999_999  # no such process here
+    here = tmp_path / f".step-000000002.ckpt.{HOST}.{dead}.tmp"
+    elsewhere = tmp_path / f".step-000000003.ckpt.other-node-7.{dead}.tmp"
+    stale = tmp_path / f".step-000000004.ckpt.other-node-8.{dead}.tmp"
+    for path in (here, elsewhere, stale):
+        path.write_bytes(os.urandom(100))
+    old = time.time() - 2 * 3600
+    os.utime(stale, (old, old))
+    ck.save(5, {"x": torch.rand(3)})
+    assert not here.exists() and not stale.exists()  # a dead writer of this host; another host's, long idle
+    assert elsewhere.exists()  # its process id means nothing here: its writer may be alive
+    assert ck.steps() == [5]

@@ -17,6 +17,7 @@ from assets_store.hashing import bytes_sha256, config_hash
 from assets_store.manifest import MANIFEST_FILE, Manifest
 from assets_store.store import CHECKPOINTS_DIR, Store
 from ops.config.tree import from_dict
+from ops.engine.early_stop import whole_schedule_record
 from ops.engine.pipeline import PhotoRun, run_photo
 from ops.engine.priors import PriorsConfig
 from ops.engine.stage_ids import RENAMED_STAGES
@@ -24,7 +25,6 @@ from ops.engine.store_layout import (
     CONFIG_CHANGES,
     LAYOUT,
     LAYOUT_FILE,
-    adopt_layout1_checkpoint,
     layout_of,
     migrate,
     open_store,
@@ -104,7 +104,7 @@ def test_an_interrupted_stage_resumes_from_its_layout1_checkpoint(current: Store
     for s in later:  # interrupted in ``stage``: its checkpoint is all there is of it
         shutil.rmtree(store.stage_dir(KEY, s))
     # Where the code before the renaming kept it: old input names, the layout-1 spelling of the config.
-    old_config = run.config_record(planned)
+    old_config = whole_schedule_record(run.config_record(planned))  # layout 1 predates early stopping
     for change in reversed(CONFIG_CHANGES):
         if stage in change.stages:
             change.backward(old_config)
@@ -117,9 +117,9 @@ def test_an_interrupted_stage_resumes_from_its_layout1_checkpoint(current: Store
     assert not migrate(store).problems
     resume_at = run.checkpoint_path(planned)
     assert not resume_at.exists(), "the checkpoint folder's name changed with the layout"
-    assert adopt_layout1_checkpoint(store, KEY, stage, run.config_record(planned), planned.fingerprint)
+    assert run.adopt_layout1_checkpoint(planned)
     assert (resume_at / "step_000004.safetensors").read_bytes() == b"state"
-    assert not adopt_layout1_checkpoint(store, KEY, stage, run.config_record(planned), planned.fingerprint)
+    assert not run.adopt_layout1_checkpoint(planned)
     # The pipeline does the same before it starts a stage: run it from the layout-1 folder once more.
     legacy = store.checkpoint_dir(KEY, stage) / old_dir.parent.name / old_dir.name  # moved with its stage folder
     os.replace(resume_at, legacy)

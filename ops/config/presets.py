@@ -29,7 +29,7 @@ from ops.stages.dmtet import DMTetStageConfig
 from ops.stages.nerf import NerfStageConfig, small_field
 from ops.stages.qa import QAConfig
 from ops.stages.reference import ReferenceStageConfig
-from ops.stages.texture import TextureStageConfig
+from ops.stages.texture import TextureStageConfig, texture_loop
 
 log = logging.getLogger("morpheus3d")
 
@@ -58,7 +58,7 @@ def standard() -> PipelineConfig:
         nerf=NerfStageConfig(loop=LoopConfig(3000, checkpoint_every=250, log_every=25), resolution=96,
                            render=VolumeRenderConfig(n_samples=128, with_normals=False)),
         dmtet=DMTetStageConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256, max_grid=96),
-        texture=TextureStageConfig(loop=LoopConfig(1500, checkpoint_every=250, log_every=25), resolution=256),
+        texture=TextureStageConfig(loop=texture_loop(1500, 250, 25), resolution=256),
         qa=QAConfig(eval_resolution=512, turntable_views=36),
     )
 
@@ -77,7 +77,7 @@ def draft() -> PipelineConfig:
         dmtet=DMTetStageConfig(loop=LoopConfig(80, checkpoint_every=20, log_every=10), resolution=96, max_grid=40,
                              texture_field=small_texture, colour_fit_steps=150, colour_fit_points=1 << 13,
                              preview_size=128, conversion=ConversionConfig(samples=48)),
-        texture=TextureStageConfig(loop=LoopConfig(60, checkpoint_every=20, log_every=10), resolution=96,
+        texture=TextureStageConfig(loop=texture_loop(60, 20, 10), resolution=96,
                                     preview_size=128),
         bake=BakeStageConfig(map=BakeConfig(texture_size=256, padding=2, dilation_iterations=4), preview_size=128,
                           eval_resolution=128),

@@ -140,13 +140,27 @@ def override(config: T, path: str, value: Any) -> T:
 
 
 def apply_overrides(config: T, assignments: Iterable[str]) -> T:
-    """Apply ``key.sub=value`` strings in order; values are JSON or bare strings."""
+    """Apply ``key.sub=value`` strings in order; values are JSON or bare strings. A ``*`` segment
+    matches any one name (``*.loop.early_stop=false``: every stage's loop)."""
     for item in assignments:
         key, sep, text = item.partition("=")
-        if not sep or not key.strip():
+        key = key.strip()
+        if not sep or not key:
             raise ConfigError(f"{item!r}: an override is key=value, e.g. nerf.loop.steps=200")
-        config = override(config, key.strip(), _parse(text.strip()))
+        for path in _expand(config, key):
+            config = override(config, path, _parse(text.strip()))
     return config
+
+
+def _expand(config: Any, key: str) -> list[str]:
+    if "*" not in key:
+        return [key]
+    pattern = key.split(".")
+    paths = [k for k in flat_keys(config) if len(parts := k.split(".")) == len(pattern)
+             and all(p in ("*", name) for p, name in zip(pattern, parts, strict=True))]
+    if not paths:
+        raise ConfigError(f"{key}: matches no setting (a * stands for one name, e.g. *.loop.steps)")
+    return paths
 
 
 def flat_keys(config: Any, prefix: str = "") -> list[str]:

@@ -11,6 +11,8 @@ over the per-object tasks of one stage:
   would get alone, up to floating-point summation order (a test checks this);
 - an object whose step is bad (empty surface, non-finite render) sits that step out while the
   others go on; its count is reported per object;
+- an object whose scene has converged (``ops.engine.early_stop``, on its own log columns) stops
+  there: it is no longer rendered, guided or evaluated, and the batch ends when all have stopped;
 - the loop (``run_loop``) is unchanged: checkpoints hold every object's state and generator, so
   a killed batch resumes exactly when it is re-run with the same objects.
 """
@@ -28,8 +30,8 @@ from torch import Tensor
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
 from morpheus_core.priors.proxy.prior import CurrentRenderCounterpart, ProxyPrior
 from ops.engine.guided_task import GuidedTask, RenderedStep, step_output
-from ops.engine.loop import BadStep, LoopResult, ProgressFn, StepOutput, run_loop
-from ops.engine.stage_job import StageJob, StageResult
+from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn, StepOutput, run_loop
+from ops.engine.stage_job import StageJob, StageResult, loop_notes
 
 
 def _concat(values: list[Any]) -> Any:
@@ -76,6 +78,7 @@ class BatchTask:
         self.tasks = list(tasks)
         self.generators = list(generators)
         self.bad_steps = [0] * len(tasks)
+        self.stopped: dict[int, int] = {}  # object → the step its scene converged at
         self._live: list[int] = []
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -84,6 +87,8 @@ class BatchTask:
     def _render_all(self, step: int) -> tuple[list[int], list[RenderedStep]]:
         live, rendered = [], []
         for i, (task, gen) in enumerate(zip(self.tasks, self.generators, strict=True)):
+            if i in self.stopped:
+                continue
             try:
                 rendered.append(task.render_step(step, gen))
                 live.append(i)
@@ -120,7 +125,7 @@ class BatchTask:
 
     def state(self) -> dict[str, Any]:
         return {"objects": [t.state() for t in self.tasks], "generators": [g.get_state() for g in self.generators],
-                "bad_steps": list(self.bad_steps)}
+                "bad_steps": list(self.bad_steps), "stopped": dict(self.stopped)}
 
     def load_state(self, state: Mapping[str, Any]) -> None:
         if len(state["objects"]) != len(self.tasks):
@@ -132,22 +137,36 @@ class BatchTask:
         # Counts only grow: a resume (fresh zeros) takes the checkpoint's, while the loop's restore of
         # the last good state after bad steps in a row must not forget the steps sat out since.
         self.bad_steps = [max(a, b) for a, b in zip(self.bad_steps, state["bad_steps"], strict=True)]
+        # Likewise a converged object stays stopped (at its first stop step) through a restore.
+        self.stopped = {int(i): int(s) for i, s in {**state.get("stopped", {}), **self.stopped}.items()}
 
     def evaluate(self) -> dict[str, float]:
-        return {f"{i}/{k}": v for i, t in enumerate(self.tasks) for k, v in t.evaluate().items()}
+        return {f"{i}/{k}": v for i, t in enumerate(self.tasks) if i not in self.stopped
+                for k, v in t.evaluate().items()}
+
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig) -> bool:
+        for i in range(len(self.tasks)):
+            if i not in self.stopped and self.tasks[i].stop_early(history, done, config, f"{i}/ref_psnr"):
+                self.stopped[i] = done
+        return len(self.stopped) == len(self.tasks)
 
 
 _PER_STEP = ("step", "wall_s", "ok")
 
 
-def object_result(result: LoopResult, index: int, bad_steps: int) -> LoopResult:
+def object_result(result: LoopResult, index: int, bad_steps: int, stopped_at: int | None = None) -> LoopResult:
     """Object ``index``'s view of a batch's loop result: its own log columns, and the shared ones —
     the loss terms summed over the batch are renamed ``batch_…`` so nobody reads them as this object's."""
     prefix = f"{index}/"
     history = [{**{(k if k in _PER_STEP else f"batch_{k}"): v for k, v in row.items() if "/" not in k},
                 **{k[len(prefix):]: v for k, v in row.items() if k.startswith(prefix)}} for row in result.history]
-    guards = dataclasses.replace(result.guards, bad_step=result.guards.bad_step + bad_steps)
-    return LoopResult(history, guards, result.resumed_from, result.steps_run, result.wall_s)
+    # Its own count only: the loop's counts the steps no object could take, which this object's
+    # count already holds (when it was still running) or which it sat out (once it had stopped).
+    guards = dataclasses.replace(result.guards, bad_step=bad_steps)
+    out = dataclasses.replace(result, history=history, guards=guards)
+    if stopped_at is None:  # the batch stops only once every object has, so this one ran the schedule
+        return out
+    return dataclasses.replace(out, steps_run=max(0, stopped_at - (result.resumed_from or 0)), stopped_at=stopped_at)
 
 
 def run_jobs(jobs: Sequence[StageJob], checkpoint_dir: Path | None = None, progress: ProgressFn | None = None,
@@ -163,8 +182,10 @@ def run_jobs(jobs: Sequence[StageJob], checkpoint_dir: Path | None = None, progr
         out: list[StageResult | Exception] = []
         for i, job in enumerate(jobs):
             try:
-                res = job.finish(object_result(result, i, batch.bad_steps[i]))
+                own = object_result(result, i, batch.bad_steps[i], batch.stopped.get(i))
+                res = job.finish(own)
                 res.metrics["batch_size"] = len(jobs)
+                res.notes.extend(loop_notes(own, job.loop))
                 out.append(res)
             except Exception as exc:  # one object's broken output must not lose the others
                 out.append(exc)

@@ -23,7 +23,8 @@ from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
 from morpheus_core.guidance_presets import GuidanceSettings
 from morpheus_core.loss_balance import scaled_total
 from morpheus_core.render.output import RenderOutput
-from ops.engine.loop import StepOutput
+from ops.engine.early_stop import converged
+from ops.engine.loop import LoopConfig, StepOutput
 from ops.engine.priors import PriorSuite
 from ops.engine.target import ReferenceTarget, reference_psnr
 
@@ -98,3 +99,13 @@ class GuidedTask(ABC):
     def evaluate(self) -> dict[str, float]:
         with torch.no_grad():
             return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+
+    def last_phase(self, step: int) -> bool:
+        """Whether the stage's own schedule has reached its last phase by ``step``: a stage never
+        stops inside an earlier one (the NeRF stage overrides this for its hash-grid levels)."""
+        return True
+
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig,
+                   metric: str = "ref_psnr") -> bool:
+        """``ops.engine.early_stop.converged`` on the ``metric`` column, once in the last phase."""
+        return self.last_phase(done) and converged(history, done, config, metric)

@@ -12,6 +12,9 @@ Guards: a step whose loss, prior output or gradients hold NaN/Inf is skipped (no
 that leaves non-finite parameters is rolled back at once. After ``max_bad_steps`` consecutive bad
 steps the last good state (the newest checkpoint, or the start) is restored. Every event is
 counted; ``NonFiniteStateError`` from the checkpoint writer guarantees no NaN is ever saved.
+
+Early stopping: at each log row the task says whether its scene has converged
+(``ops.engine.early_stop``); the loop then ends before ``steps`` and the result says where.
 """
 
 from __future__ import annotations
@@ -61,6 +64,15 @@ class LoopConfig:
     """Initial float16 loss scale; it halves on a step whose gradients overflow (step skipped and counted)."""
     fp16_growth_interval: int = 100
     """Good float16 steps after which the loss scale doubles."""
+    early_stop: bool = True
+    """End the stage before ``steps`` once its reference-view PSNR stops improving (``early_stop_*``,
+    ``ops.engine.early_stop``); false: the fixed schedule."""
+    early_stop_patience: float = 0.1
+    """Share of the schedule over which the best reference-view PSNR must improve for the stage to go on."""
+    early_stop_min_share: float = 0.5
+    """Share of the schedule every stage runs before it may stop."""
+    early_stop_min_gain_db: float = 0.05
+    """Gain (dB) of the best reference-view PSNR over the patience window that counts as still improving."""
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -75,6 +87,11 @@ class LoopConfig:
             raise ValueError(f"fp16_loss_scale must be finite and > 0, got {self.fp16_loss_scale}")
         if self.fp16_growth_interval < 1:
             raise ValueError(f"fp16_growth_interval must be ≥ 1, got {self.fp16_growth_interval}")
+        if not (0 < self.early_stop_patience <= 1 and 0 <= self.early_stop_min_share <= 1):
+            raise ValueError(f"early_stop_patience must be in (0, 1] and early_stop_min_share in [0, 1], got "
+                             f"{self.early_stop_patience} and {self.early_stop_min_share}")
+        if not (math.isfinite(self.early_stop_min_gain_db) and self.early_stop_min_gain_db >= 0):
+            raise ValueError(f"early_stop_min_gain_db must be finite and ≥ 0, got {self.early_stop_min_gain_db}")
 
 
 @dataclass
@@ -102,6 +119,9 @@ class StageTask(Protocol):
 
     def evaluate(self) -> dict[str, float]:
         """Deterministic measurements for the log (must not draw from any generator)."""
+
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig) -> bool:
+        """Whether the loop may end after step ``done`` (``ops.engine.early_stop``); asked at log rows only."""
 
 
 @dataclass(frozen=True)
@@ -140,6 +160,9 @@ class LoopResult:
     resumed_from: int | None
     steps_run: int
     wall_s: float
+    schedule_steps: int = 0
+    stopped_at: int | None = None
+    """The step the loop ended at because the scene had converged; None: it ran its whole schedule."""
 
 
 def _parameters(task: StageTask) -> Iterator[nn.Parameter]:
@@ -216,6 +239,7 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
     good = _clone(task.state())
     t0 = time.perf_counter()
     consecutive = 0
+    stopped_at: int | None = None
 
     def elapsed() -> float:
         return wall_before + time.perf_counter() - t0
@@ -241,6 +265,9 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
             if progress is not None:
                 progress(ProgressEvent(stage, done, config.steps, elapsed(), {
                     k: v for k, v in row.items() if isinstance(v, float) and k != "wall_s"}))
+            if config.early_stop and done < config.steps and task.stop_early(history, done, config):
+                stopped_at = done
+                break
         if ckpts is not None and done % config.checkpoint_every == 0 and done < config.steps:
             state = task.state()
             ckpts.save(done, {
@@ -250,7 +277,8 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
                 "loss_scale": [scale.value, scale.good],
             })
             good = _clone(state)
-    return LoopResult(history, guards, resumed_from, config.steps - start, elapsed())
+    end = config.steps if stopped_at is None else stopped_at
+    return LoopResult(history, guards, resumed_from, max(0, end - start), elapsed(), config.steps, stopped_at)
 
 
 def _guarded_step(task: StageTask, step: int, generator: torch.Generator, config: LoopConfig,

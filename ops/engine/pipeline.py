@@ -27,6 +27,7 @@ from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
 from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
+from ops.engine.early_stop import whole_schedule_record
 from ops.engine.gpu_lease import GpuLease, leased_device
 from ops.engine.loop import ProgressEvent, ProgressFn
 from ops.engine.priors import WEIGHT_FREE, PriorSuite
@@ -84,11 +85,24 @@ class MissingUpstreamError(RuntimeError):
 
 @dataclass(frozen=True)
 class PlannedStage:
-    """A stage's work for one photo with the fingerprint that decides whether it must run."""
+    """A stage's work for one photo with the fingerprints that decide whether it must run.
+
+    ``fingerprint`` is of the whole config; ``whole_schedule`` leaves the early-stopping settings
+    out (``ops.engine.early_stop``): it is what an output that ran every step of its schedule is
+    recorded under, and such an output satisfies any early-stopping setting. Checkpoints, made
+    before any stop, are kept under it too."""
 
     stage: str
     work: StageWork
     fingerprint: Fingerprint
+    whole_schedule: Fingerprint
+
+    def matches(self, fingerprint: Fingerprint) -> bool:
+        return fingerprint in (self.fingerprint, self.whole_schedule)
+
+    def recorded(self, result: StageResult) -> Fingerprint:
+        """The fingerprint a finished output is committed under."""
+        return self.fingerprint if result.metrics.get("stopped_early") else self.whole_schedule
 
 
 class PhotoRun:
@@ -175,14 +189,16 @@ class PhotoRun:
         key = ("config_hash", stage,
                tuple((k, id(v) if is_dataclass(v) else v) for k, v in sorted(work.config.items())))
         if key not in self.memo:
-            self.memo[key] = config_hash(json.loads(json.dumps(to_dict(work.config), default=str)))
-        fp = Fingerprint(inputs={**inputs, **work.inputs}, config_hash=self.memo[key],
-                         code_version=declared.code_version)
-        return PlannedStage(stage, work, fp)
+            record = json.loads(json.dumps(to_dict(work.config), default=str))
+            self.memo[key] = (config_hash(record), config_hash(whole_schedule_record(record)))
+        full, whole = self.memo[key]
+        inputs = {**inputs, **work.inputs}
+        return PlannedStage(stage, work, Fingerprint(inputs, full, declared.code_version),
+                            Fingerprint(inputs, whole, declared.code_version))
 
     def cached(self, planned: PlannedStage) -> Manifest | None:
         """The finished output matching the fingerprint, recorded as this run's output of the stage."""
-        cached = self.store.lookup(self.key, planned.stage, planned.fingerprint)
+        cached = self.store.lookup(self.key, planned.stage, planned.fingerprint, planned.whole_schedule)
         if cached is not None:
             self.outcome.stages.append(StageOutcome(planned.stage, "cached", 0.0, cached))
             self._report(planned.stage, "cached")
@@ -190,7 +206,13 @@ class PhotoRun:
         return cached
 
     def checkpoint_path(self, planned: PlannedStage) -> Path:
-        return checkpoint_path(self.store, self.key, planned.stage, planned.fingerprint)
+        return checkpoint_path(self.store, self.key, planned.stage, planned.whole_schedule)
+
+    def adopt_layout1_checkpoint(self, planned: PlannedStage) -> bool:
+        """Resume from the checkpoints a run from before store layout 2 left (they predate early
+        stopping, so are of the whole schedule); False when there are none."""
+        return adopt_layout1_checkpoint(self.store, self.key, planned.stage,
+                                        whole_schedule_record(self.config_record(planned)), planned.whole_schedule)
 
     def config_record(self, planned: PlannedStage) -> dict[str, Any]:
         """The stage's config as plain JSON data: what the manifest records and the hash is of."""
@@ -205,8 +227,7 @@ class PhotoRun:
     def execute(self, planned: PlannedStage) -> Manifest:
         """Make the stage's output (no cache lookup), resuming from its checkpoint; raises on failure."""
         ckpt = self.checkpoint_path(planned)
-        adopt_layout1_checkpoint(self.store, self.key, planned.stage, self.config_record(planned),
-                                 planned.fingerprint)
+        self.adopt_layout1_checkpoint(planned)
         resumed = ckpt.is_dir() and any(ckpt.iterdir())
         start = time.perf_counter()
         with self.store.stage_writer(self.key, planned.stage) as writer:
@@ -219,7 +240,7 @@ class PhotoRun:
         stage = planned.stage
         plan = self.plan if stage != "reference" else read_plan(writer.path)
         manifest = Manifest(
-            stage=stage, photo_key=self.key, fingerprint=planned.fingerprint, outputs={},
+            stage=stage, photo_key=self.key, fingerprint=planned.recorded(result), outputs={},
             config=self.config_record(planned),
             metrics=result.metrics, wall_time_s=round(wall, 3), device=result.device, preset=self.preset,
             plan={} if plan is None else {"refine": plan.highpass_refinement.action,
@@ -260,7 +281,7 @@ class PhotoRun:
                 out[stage], upstream_ok = "missing", False
                 continue
             self.done[stage] = manifest  # downstream fingerprints read it as their input
-            fresh = upstream_ok and manifest.fingerprint == self.planned(stage).fingerprint
+            fresh = upstream_ok and self.planned(stage).matches(manifest.fingerprint)
             out[stage] = "fresh" if fresh else "stale"
             upstream_ok = upstream_ok and fresh
         return out

@@ -30,7 +30,19 @@ def loop_metrics(result: LoopResult) -> dict[str, Any]:
     out.update({f"guard_{k}": v for k, v in result.guards.as_dict().items()})
     if "ref_psnr" in last:
         out["ref_psnr"] = last["ref_psnr"]
+    out["schedule_steps"] = result.schedule_steps
+    out["stopped_early"] = result.stopped_at is not None
+    out["steps_saved"] = 0 if result.stopped_at is None else result.schedule_steps - result.stopped_at
     return out
+
+
+def loop_notes(result: LoopResult, loop: LoopConfig) -> list[str]:
+    """What people should know about how the loop ended."""
+    if result.stopped_at is None:
+        return []
+    return [f"stopped at step {result.stopped_at:,} of {result.schedule_steps:,}: the reference-view PSNR gained "
+            f"less than {loop.early_stop_min_gain_db:g} dB over the last {loop.early_stop_patience:.0%} of the "
+            f"schedule (--set <stage>.loop.early_stop=false runs every step)"]
 
 
 @dataclass
@@ -49,8 +61,10 @@ class StageJob:
 
     def run(self, checkpoint_dir: Path | None = None, progress: ProgressFn | None = None) -> StageResult:
         try:
-            result = self.finish(run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress))
+            looped = run_loop(self.task, self.loop, self.generator, self.stage, checkpoint_dir, progress)
+            result = self.finish(looped)
             result.metrics["batch_size"] = 1  # every optimising manifest says how many photos shared its steps
+            result.notes.extend(loop_notes(looped, self.loop))
             return result
         finally:
             self.close()

@@ -7,16 +7,27 @@ from ops.engine.pipeline import PhotoOutcome, uses_weight_free
 from ops.stages.bake import ASSET_GLB
 
 
+def steps_run(outcome: PhotoOutcome) -> str:
+    """Steps the optimising stages reached of their schedules' steps; early stopping's saving."""
+    done = [s.manifest.metrics for s in outcome.stages
+            if s.manifest is not None and s.manifest.metrics.get("schedule_steps")]
+    if not done:
+        return "-"
+    planned = sum(int(m["schedule_steps"]) for m in done)
+    saved = sum(int(m.get("steps_saved", 0)) for m in done)
+    return f"{planned - saved:,}/{planned:,}" + (f" (-{saved / planned:.0%})" if saved else "")
+
+
 def format_run_table(outcomes: list[PhotoOutcome], store: Store) -> str:
-    rows = [("PHOTO", "KEY", "OUTCOME", "STAGES", "TIME", "REF PSNR", "RESULT")]
+    rows = [("PHOTO", "KEY", "OUTCOME", "STAGES", "TIME", "REF PSNR", "STEPS RUN", "RESULT")]
     for o in outcomes:
         stages = " ".join(f"{s.stage}={s.status}" for s in o.stages)
         psnr = o.metric("bake", "ref_psnr")
         result = o.error or str(store.stage_dir(o.key, "bake") / ASSET_GLB)
         rows.append((o.photo.name, o.key, o.status, stages, f"{o.wall_s:.0f}s",
-                     "-" if psnr is None else f"{psnr:.1f} dB", result))
-    widths = [max(len(r[c]) for r in rows) for c in range(6)]
-    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r[:6], widths, strict=True)) + "  " + r[6] for r in rows]
+                     "-" if psnr is None else f"{psnr:.1f} dB", steps_run(o), result))
+    widths = [max(len(r[c]) for r in rows) for c in range(7)]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r[:7], widths, strict=True)) + "  " + r[7] for r in rows]
     counts = {s: sum(o.status == s for o in outcomes) for s in ("ok", "cached", "failed")}
     lines.append(", ".join(f"{v} {k}" for k, v in counts.items() if v) or "no photos")
     if any(uses_weight_free(o) for o in outcomes):

@@ -112,6 +112,10 @@ class NerfTask(GuidedTask):
             terms["normal_smooth"] = s.detach()
         return RenderedStep(cams, novel.rgb_chw(), ref.rgb_chw(), loss, terms)
 
+    def last_phase(self, step: int) -> bool:
+        # Finer hash-grid levels still switching on: stopping now would leave them untrained.
+        return self.cfg.model.grid.levels_at(step) >= self.cfg.model.grid.n_levels
+
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:
         occ = self.occupancy if self.cfg.use_occupancy else None

@@ -1,0 +1,222 @@
+"""Early stopping on and off: steps and minutes saved per scene, and the GLB metrics against the seed spread.
+
+Each (schedule, scene, seed) runs the whole pipeline twice with the oracle priors, once with the
+fixed schedule (``*.loop.early_stop=false``) and once with the defaults (early stopping on), and
+scores every stage's output as ``benchmarks/error_time.py`` does. A difference counts as within
+the spread when the early-stopping mean over seeds lies within the fixed path's min–max over seeds.
+The stages log their reference-view PSNR about 40 times per stage here (``log_every`` = steps/40),
+as the presets do (100–200 rows per stage), so the rule sees a real curve.
+
+    python -m benchmarks.early_stop --device cuda --jobs 8 --schedules draft,standard/5 --seeds 0,1,2
+    python -m benchmarks.early_stop --schedules draft --scenes mug --seeds 0 --name early_stop_smoke   # CPU smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from benchmarks.error_time import POINTS, run_error_time
+from benchmarks.quality import SIZES, _worker_init, _write, machine
+from benchmarks.scene_eval import EvalConfig
+from benchmarks.scene_runs import Schedule, photo_path, schedule_store
+from benchmarks.scenes import SCENE_NAMES, make_scenes
+from ops.engine.gpu_lease import LEASE_DIR_ENV
+
+RESULTS = Path(__file__).parent / "results"
+OPTIMISING = ("nerf", "dmtet", "texture")
+BASES = {s.label: s for s in (SIZES["cpu"].ablation, *SIZES["gpu"].timing)}
+METRICS = ("novel_psnr", "chamfer", "fscore")
+
+
+def _variant(base: Schedule, seed: int, early: bool) -> Schedule:
+    cfg = base.config("cpu")
+    logs = tuple(f"{s}.loop.log_every={max(1, getattr(cfg, s).loop.steps // 40)}" for s in OPTIMISING)
+    fixed = () if early else tuple(f"{s}.loop.early_stop=false" for s in OPTIMISING)
+    label = f"{base.label.replace('/', '-')}.{'early' if early else 'fixed'}.s{seed}"
+    return replace(base, label=label, overrides=(*base.overrides, *logs, *fixed, f"seed={seed}"))
+
+
+def _steps(work: Path, schedule: Schedule, scene: str) -> dict[str, dict[str, int]]:
+    store = schedule_store(work, schedule)
+    out = {}
+    for stage in OPTIMISING:
+        m = store.read_manifest(scene, stage)
+        if m is not None:
+            out[stage] = {"run": int(m.metrics.get("steps_run", 0)), "saved": int(m.metrics.get("steps_saved", 0)),
+                          "schedule": int(m.metrics.get("schedule_steps", 0)), "wall_s": float(m.wall_time_s)}
+    return out
+
+
+def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str, work: Path, eval_cfg: EvalConfig,
+        jobs: int, log: Path) -> list[dict[str, Any]]:
+    """Every cell not yet in ``log``, ``jobs`` at a time; each finished record is appended to ``log``
+    (JSON lines) at once, so a run cut short by a time limit keeps what it finished and the next
+    run with the same log goes on from there."""
+    by_name = {s.name: s for s in make_scenes(0, scenes)}
+    for scene in by_name.values():  # written once here: the workers would race on the same photo
+        photo_path(scene, work / "photos")
+    records = [json.loads(line) for line in log.read_text().splitlines() if line] if log.is_file() else []
+    finished = {(r["base"], r["scene"], r["seed"], r["early_stop"]) for r in records}
+    cells = [(base, seed, early, name) for base in bases for name in scenes for seed in seeds
+             for early in (False, True) if (base.label, name, seed, early) not in finished]
+    log.parent.mkdir(parents=True, exist_ok=True)
+    where = machine(device)
+
+    def finish(cell: tuple[Schedule, int, bool, str], result: list[dict[str, Any]]) -> None:
+        base, seed, early, name = cell
+        rec = {**result[0], "base": base.label, "seed": seed, "early_stop": early, "machine": where,
+               "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+               "steps": _steps(work, _variant(base, seed, early), name)}
+        records.append(rec)
+        with log.open("a", encoding="utf-8") as fh:
+            fh.write(json.dumps(rec, default=str) + "\n")
+
+    args = [([by_name[name]], [_variant(base, seed, early)], device, work, eval_cfg)
+            for base, seed, early, name in cells]
+    if jobs <= 1:
+        for cell, a in zip(cells, args, strict=True):
+            finish(cell, run_error_time(*a))
+        return records
+    threads = max(1, torch.get_num_threads() // jobs)
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_shared_gpu_worker,
+                             initargs=(threads,)) as pool:
+        futures = {pool.submit(run_error_time, *a): cell for cell, a in zip(cells, args, strict=True)}
+        for future in as_completed(futures):
+            finish(futures[future], future.result())
+    return records
+
+
+def _shared_gpu_worker(threads: int) -> None:
+    # The runs share the host's GPU on purpose (they are launch-bound): each worker leases from its
+    # own folder instead of waiting for the one device the pipeline's GPU lease would give out.
+    os.environ[LEASE_DIR_ENV] = tempfile.mkdtemp(prefix="early-stop-lease-")
+    _worker_init(threads)
+
+
+def _glb(rec: dict[str, Any]) -> dict[str, float]:
+    return next(p for p in rec["points"] if p["stage"] == POINTS[-1])
+
+
+def _mean_sd(values: list[float]) -> tuple[float, float]:
+    return statistics.fmean(values), (statistics.stdev(values) if len(values) > 1 else 0.0)
+
+
+def summarise(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (schedule, scene) and one per schedule over all its scenes, from the (schedule,
+    scene, seed) cells that finished both ways (a run cut short leaves some half done)."""
+    done = [r for r in records if "points" in r]
+    both = {k for k in {(r["base"], r["scene"], r["seed"]) for r in done}
+            if {r["early_stop"] for r in done if (r["base"], r["scene"], r["seed"]) == k} == {False, True}}
+    ok = [r for r in done if (r["base"], r["scene"], r["seed"]) in both]
+    rows = []
+    for base in dict.fromkeys(r["base"] for r in ok):
+        scenes = list(dict.fromkeys(r["scene"] for r in ok if r["base"] == base))
+        for scene in [*scenes, "all scenes"]:
+            pick = [r for r in ok if r["base"] == base and (scene == "all scenes" or r["scene"] == scene)]
+            row: dict[str, Any] = {"schedule": base, "scene": scene}
+            for early in (False, True):
+                tag = "early" if early else "fixed"
+                mine = [r for r in pick if r["early_stop"] is early]
+                seeds = sorted({r["seed"] for r in mine})
+                # Over scenes: the per-seed mean over scenes, so the spread is the seeds' spread.
+                per_seed = {m: [statistics.fmean(_glb(r)[m] for r in mine if r["seed"] == s) for s in seeds]
+                            for m in METRICS}
+                for m in METRICS:
+                    mean, sd = _mean_sd(per_seed[m])
+                    row[f"{tag}_{m}"], row[f"{tag}_{m}_sd"] = mean, sd
+                    row[f"{tag}_{m}_range"] = (min(per_seed[m]), max(per_seed[m]))
+                row[f"{tag}_wall_s"] = statistics.fmean(_glb(r)["wall_s"] for r in mine)
+                row[f"{tag}_steps"] = sum(s["run"] for r in mine for s in r["steps"].values()) / max(1, len(mine))
+                row[f"{tag}_stage_steps"] = {st: statistics.fmean(r["steps"][st]["run"] for r in mine
+                                                                  if st in r["steps"]) for st in OPTIMISING}
+            deltas = [_glb(e)["novel_psnr"] - _glb(f)["novel_psnr"] for e in pick if e["early_stop"]
+                      for f in pick if not f["early_stop"] and (f["scene"], f["seed"]) == (e["scene"], e["seed"])]
+            row["paired_delta_psnr"], row["paired_delta_psnr_sd"] = _mean_sd(deltas)
+            row["pairs"] = len(deltas)
+            for m in METRICS:
+                lo, hi = row[f"fixed_{m}_range"]
+                row[f"{m}_within_spread"] = lo <= row[f"early_{m}"] <= hi
+            rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict[str, Any]], seeds: list[int]) -> str:
+    lines = ["| schedule | scene | GLB PSNR fixed (dB) | GLB PSNR early (dB) | Chamfer fixed | Chamfer early | "
+             "F-score fixed | F-score early | paired Δ PSNR (dB) | within seed range | "
+             "steps run fixed → early (nerf/dmtet/texture) | wall fixed (s) | wall early (s) | time saved |",
+             "|---|---|" + "---:|" * 12]
+    for r in rows:
+        within = "/".join("yes" if r[f"{m}_within_spread"] else "no" for m in METRICS)
+        steps = " / ".join(f"{r['fixed_stage_steps'][s]:.0f}→{r['early_stage_steps'][s]:.0f}" for s in OPTIMISING)
+        saved = 1 - r["early_wall_s"] / r["fixed_wall_s"] if r["fixed_wall_s"] else 0.0
+        name = f"**{r['scene']}**" if r["scene"] == "all scenes" else r["scene"]
+        lines.append(
+            f"| {r['schedule']} | {name} | {r['fixed_novel_psnr']:.2f} ± {r['fixed_novel_psnr_sd']:.2f} | "
+            f"{r['early_novel_psnr']:.2f} ± {r['early_novel_psnr_sd']:.2f} | {r['fixed_chamfer']:.4f} | "
+            f"{r['early_chamfer']:.4f} | {r['fixed_fscore']:.3f} | {r['early_fscore']:.3f} | "
+            f"{r['paired_delta_psnr']:+.2f} ± {r['paired_delta_psnr_sd']:.2f} (n={r['pairs']}) | {within} | {steps} | "
+            f"{r['fixed_wall_s']:.1f} | {r['early_wall_s']:.1f} | {saved:.0%} |")
+    return ("\n".join(lines) + f"\n\n± is the standard deviation over the pipeline seeds {seeds}; 'within seed range' "
+            "(PSNR/Chamfer/F-score): the early-stopping mean lies inside the fixed schedule's min–max over those "
+            "seeds. Paired Δ: early − fixed GLB PSNR of the same scene and seed, mean ± sd over the pairs. "
+            "Wall time: reference preparation + the four stages, mean over seeds (and scenes).\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--schedules", default="draft", help=f"comma-separated, of {sorted(BASES)}")
+    ap.add_argument("--scenes", default=",".join(SCENE_NAMES))
+    ap.add_argument("--seeds", default="0,1,2", help="pipeline seeds")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--jobs", type=int, default=1, help="runs at once, each in its own process")
+    ap.add_argument("--work", type=Path, default=Path("outputs/early_stop"))
+    ap.add_argument("--results", type=Path, default=RESULTS)
+    ap.add_argument("--name", default="")
+    ap.add_argument("--from-records", type=Path, nargs="*", default=None,
+                    help="summarise these JSON-lines record files (of earlier, possibly cut-short runs) instead")
+    args = ap.parse_args(argv)
+    unknown = [s for s in args.schedules.split(",") if s not in BASES]
+    if unknown:
+        ap.error(f"unknown schedule(s) {unknown}; choose from {sorted(BASES)}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda but no CUDA device is visible")
+    bases = [BASES[s] for s in args.schedules.split(",")]
+    scenes, seeds = [s for s in args.scenes.split(",") if s], [int(s) for s in args.seeds.split(",") if s]
+    eval_cfg = SIZES["gpu" if args.device == "cuda" else "cpu"].eval
+    name = args.name or f"early_stop_{'h200' if args.device == 'cuda' else 'cpu'}"
+    start = time.perf_counter()
+    if args.from_records is not None:
+        records = [json.loads(line) for f in args.from_records for line in f.read_text().splitlines() if line]
+        seeds = sorted({r["seed"] for r in records})
+        scenes = list(dict.fromkeys(r["scene"] for r in records))
+    else:
+        records = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
+                      args.results / f"{name}.records.jsonl")
+    rows = summarise(records)
+    payload = {"title": "Early stopping on and off", "machine": records[0]["machine"], "date": records[0]["date"],
+               "command": "python -m benchmarks.early_stop " + " ".join(argv if argv is not None else sys.argv[1:]),
+               "wall_s": time.perf_counter() - start, "seeds": seeds, "scenes": scenes,
+               "schedules": list(dict.fromkeys(r["base"] for r in records)), "rows": rows, "records_file": f"{name}.records.jsonl",
+               "about": __doc__.split("\n\n")[1].replace("\n", " ")}
+    _write(args.results, name, payload, markdown(rows, seeds))
+    print(json.dumps([{k: r[k] for k in ("schedule", "scene", "fixed_novel_psnr", "early_novel_psnr",
+                                          "fixed_wall_s", "early_wall_s")} for r in rows], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,199 @@
+"""Early stopping (``ops.engine.early_stop``): the rule, the loop's stop and its exact resume, per-object
+stops in a batch, and fingerprints under which a whole-schedule output stays fresh."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from assets_store.hashing import config_hash
+from assets_store.store import Store
+from ops.config.tree import to_dict
+from ops.engine.batch import BatchTask
+from ops.engine.early_stop import EARLY_STOP_FIELDS, converged, whole_schedule_record
+from ops.engine.guided_task import RenderedStep
+from ops.engine.loop import LoopConfig, run_loop
+from ops.engine.pipeline import photo_status, run_photo
+from ops.engine.pipeline_batch import run_batch
+from ops.reporting.run_table import steps_run
+from tests.pipeline_helpers import PHOTOS, manifest, tiny_config
+from tests.test_optimise import Regression
+
+LOOP = LoopConfig(100, log_every=5, early_stop_patience=0.2, early_stop_min_share=0.5, early_stop_min_gain_db=0.1)
+
+
+def _history(values: list[float], every: int = 5, metric: str = "ref_psnr") -> list[dict[str, Any]]:
+    return [{"step": every * (i + 1), metric: v} for i, v in enumerate(values)]
+
+
+def test_a_plateau_stops_and_progress_goes_on() -> None:
+    rng = np.random.default_rng()
+    rising = list(np.cumsum(rng.uniform(0.2, 1.0, 20)) + 10)  # ≥ 0.2 dB per row: always improving
+    assert not any(converged(_history(rising[:n]), 5 * n, LOOP) for n in range(1, 21))
+    flat = list(20 + rng.uniform(-0.04, 0.04, 20))  # noise below the gain: converged once allowed
+    decisions = [converged(_history(flat[:n]), 5 * n, LOOP) for n in range(1, 20)]
+    assert decisions.index(True) == 9  # first asked at step 50 = min_share · steps
+    assert not converged(_history(flat), 100, LOOP)  # the last step: nothing left to save
+    assert not converged(_history(flat[:12]), 60, replace(LOOP, early_stop=False))
+
+
+def test_the_window_compares_best_values_and_skips_non_finite_rows() -> None:
+    # One good row inside the window is progress even when the last row is worse.
+    values = [20.0] * 12
+    values[10] = 21.0
+    assert not converged(_history(values), 60, LOOP)
+    values[10] = float("nan")
+    assert converged(_history(values), 60, LOOP)
+    assert not converged(_history([float("nan")] * 12), 60, LOOP)  # nothing to compare: go on
+
+
+def test_settings_outside_their_range_are_refused() -> None:
+    for bad in ({"early_stop_patience": 0.0}, {"early_stop_min_share": 1.5}, {"early_stop_min_gain_db": -1.0},
+                {"early_stop_min_gain_db": float("inf")}):
+        with pytest.raises(ValueError, match="early_stop"):
+            LoopConfig(10, **bad)
+
+
+def _regression_loop(ckpt: Path | None, early_stop: bool = True, kill_at: int | None = None) -> Any:
+    task = Regression(11, {kill_at: "kill"} if kill_at is not None else None)
+    cfg = LoopConfig(400, checkpoint_every=20, log_every=5, grad_clip=None, early_stop=early_stop,
+                     early_stop_patience=0.1, early_stop_min_share=0.25, early_stop_min_gain_db=0.5)
+    return task, run_loop(task, cfg, torch.Generator().manual_seed(4), "test", ckpt)
+
+
+def test_the_loop_stops_early_on_the_same_path_as_the_fixed_schedule() -> None:
+    _, res = _regression_loop(None)
+    _, fixed = _regression_loop(None, early_stop=False)
+    assert res.stopped_at is not None and 100 <= res.stopped_at < 400
+    assert res.steps_run == res.stopped_at and res.schedule_steps == 400
+    assert fixed.stopped_at is None and fixed.steps_run == 400
+    assert res.history[-1]["step"] == res.stopped_at
+    assert res.history == [{**r, "wall_s": h["wall_s"]} for r, h in zip(fixed.history, res.history, strict=False)]
+    assert fixed.history[-1]["fit_db"] - res.history[-1]["fit_db"] < 2.0  # it had converged
+
+
+class _Kill(RuntimeError):
+    pass
+
+
+def test_a_run_killed_before_its_stop_resumes_to_the_same_stop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    task, whole = _regression_loop(None)
+    assert whole.stopped_at is not None
+    kill = whole.stopped_at - 7
+    original = Regression.step
+
+    def step(self: Regression, step: int, generator: torch.Generator) -> Any:
+        if self.poison.get(step) == "kill":
+            raise _Kill(f"killed at {step}")
+        return original(self, step, generator)
+
+    monkeypatch.setattr(Regression, "step", step)
+    with pytest.raises(_Kill):
+        _regression_loop(tmp_path, kill_at=kill)
+    resumed_task, resumed = _regression_loop(tmp_path)
+    assert resumed.resumed_from is not None and resumed.resumed_from < kill
+    assert resumed.stopped_at == whole.stopped_at
+    for a, b in zip(task.net.parameters(), resumed_task.net.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+class _StubTask:
+    """Just enough of a ``GuidedTask`` for ``BatchTask``'s bookkeeping of stopped objects."""
+
+    guidance = None
+
+    def __init__(self) -> None:
+        self.renders = 0
+
+    def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
+        self.renders += 1
+        image = torch.rand(1, 3, 4, 4)
+        return RenderedStep(None, image, image, torch.zeros(()))  # type: ignore[arg-type]
+
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig, metric: str) -> bool:
+        return converged(history, done, config, metric)
+
+    def evaluate(self) -> dict[str, float]:
+        return {"ref_psnr": 1.0}
+
+    def state(self) -> dict[str, Any]:
+        return {"renders": self.renders}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        self.renders = state["renders"]
+
+
+def test_a_batch_stops_each_object_on_its_own_log_and_ends_when_all_have() -> None:
+    tasks = [_StubTask(), _StubTask()]
+    batch = BatchTask(tasks, [torch.Generator(), torch.Generator()])  # type: ignore[list-item]
+    flat, rising = [20.0] * 12, [20.0 + i for i in range(12)]
+    history = [{"step": 5 * (i + 1), "0/ref_psnr": f, "1/ref_psnr": r}
+               for i, (f, r) in enumerate(zip(flat, rising, strict=True))]
+    assert not batch.stop_early(history, 60, LOOP)
+    assert batch.stopped == {0: 60}
+    assert set(batch.evaluate()) == {"1/ref_psnr"}
+    live, _ = batch._render_all(61)
+    assert live == [1] and (tasks[0].renders, tasks[1].renders) == (0, 1)
+    # A restore of an older state keeps the stop; a later plateau of the other object ends the batch.
+    older = {**batch.state(), "stopped": {}}
+    batch.load_state(older)
+    assert batch.stopped == {0: 60}
+    history += [{"step": 65, "1/ref_psnr": 31.0}, {"step": 70, "1/ref_psnr": 31.0}, {"step": 75, "1/ref_psnr": 31.0},
+                {"step": 80, "1/ref_psnr": 31.0}, {"step": 85, "1/ref_psnr": 31.0}]
+    assert batch.stop_early(history, 85, LOOP)
+    assert batch.stopped == {0: 60, 1: 85}
+
+
+def test_whole_schedule_records_drop_only_the_early_stop_settings() -> None:
+    cfg = tiny_config()
+    record = to_dict({"dmtet": cfg.dmtet, "priors": cfg.priors})
+    whole = whole_schedule_record(record)
+    assert set(record["dmtet"]["loop"]) - set(whole["dmtet"]["loop"]) == set(EARLY_STOP_FIELDS)
+    assert whole["dmtet"]["loop"]["steps"] == cfg.dmtet.loop.steps and whole["priors"] == record["priors"]
+    other = to_dict({"dmtet": replace(cfg.dmtet, loop=replace(cfg.dmtet.loop, early_stop=False)), "priors": cfg.priors})
+    assert config_hash(whole_schedule_record(other)) == config_hash(whole) != config_hash(other)
+
+
+FORCE_STOP = ("early_stop_min_share=0", "early_stop_patience=0.01", "early_stop_min_gain_db=1000")
+
+
+def _forced(stages: tuple[str, ...], *extra: str) -> Any:
+    return tiny_config(*[f"{s}.loop.{o}" for s in stages for o in FORCE_STOP], *extra)
+
+
+def test_stages_stop_early_record_it_and_stay_fresh_only_for_their_settings(tmp_path: Path) -> None:
+    store, photo = Store(tmp_path / "store"), PHOTOS / "mug.jpg"
+    cfg = _forced(("nerf", "dmtet"))
+    outcome = run_photo(photo, store, cfg, "tiny", "mug", until="dmtet")
+    assert outcome.error is None, outcome.error
+    nerf, dmtet = manifest(store, "mug", "nerf"), manifest(store, "mug", "dmtet")
+    # The NeRF stage may not stop while its finer hash-grid levels are still switching on.
+    assert nerf.metrics["stopped_early"] is False and nerf.metrics["steps_run"] == cfg.nerf.loop.steps
+    assert dmtet.metrics["stopped_early"] is True
+    assert dmtet.metrics["steps_saved"] == cfg.dmtet.loop.steps - dmtet.metrics["steps_run"] > 0
+    assert any("stopped at step" in n for n in dmtet.notes)
+    planned = cfg.nerf.loop.steps + cfg.dmtet.loop.steps
+    saved = dmtet.metrics["steps_saved"]
+    assert steps_run(outcome) == f"{planned - saved}/{planned} (-{saved / planned:.0%})"
+    assert photo_status(photo, store, cfg, "mug")["dmtet"] == "fresh"
+    fixed = _forced(("nerf",), "dmtet.loop.early_stop=false")
+    status = photo_status(photo, store, fixed, "mug")
+    assert status["nerf"] == "fresh" and status["dmtet"] == "stale"  # it stopped under the settings it no longer has
+    nerf_off = tiny_config("nerf.loop.early_stop=false")
+    assert photo_status(photo, store, nerf_off, "mug")["nerf"] == "fresh"  # the whole schedule satisfies any setting
+
+
+def test_a_batch_records_each_object_s_stop(tmp_path: Path) -> None:
+    store, cfg = Store(tmp_path / "store"), _forced(("dmtet",))
+    photos = [(PHOTOS / "mug.jpg", "mug"), (PHOTOS / "box.jpg", "box")]
+    outcomes = run_batch(photos, store, cfg, "tiny", until="dmtet")
+    assert all(o.error is None for o in outcomes), [o.error for o in outcomes]
+    for _, key in photos:
+        m = manifest(store, key, "dmtet")
+        assert m.metrics["batch_size"] == 2 and m.metrics["stopped_early"] is True
+        assert m.metrics["steps_run"] + m.metrics["steps_saved"] == cfg.dmtet.loop.steps
