@@ -4,7 +4,7 @@ Layout under the root (``<store>/catalog/`` by convention)::
 
     <root>/date=YYYY-MM-DD/part-<utc time>-<pid>-<random>.parquet      one append's rows of that UTC day
     <root>/date=YYYY-MM-DD/compact-<utc time>-<pid>-<random>.parquet   many parts merged by ``compact``
-    <root>/date=YYYY-MM-DD/.<name>.<pid>.tmp                           a file being written (readers ignore it)
+    <root>/date=YYYY-MM-DD/.<name>.<host>.<pid>.tmp                      a file being written (readers ignore it)
     <root>/.compact.lock                                               held (flock) by a running compaction
 
 Appends need no lock: every append writes its own new file under a name no other writer can pick (time, pid

@@ -210,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     payload = {"title": "Early stopping on and off", "machine": records[0]["machine"], "date": records[0]["date"],
                "command": "python -m benchmarks.early_stop " + " ".join(argv if argv is not None else sys.argv[1:]),
                "wall_s": time.perf_counter() - start, "seeds": seeds, "scenes": scenes,
-               "schedules": list(dict.fromkeys(r["base"] for r in records)), "rows": rows, "records_file": f"{name}.records.jsonl",
+               "schedules": list(dict.fromkeys(r["base"] for r in records)), "rows": rows,
+               "records_file": f"{name}.records.jsonl",
                "about": __doc__.split("\n\n")[1].replace("\n", " ")}
     _write(args.results, name, payload, markdown(rows, seeds))
     print(json.dumps([{k: r[k] for k in ("schedule", "scene", "fixed_novel_psnr", "early_novel_psnr",
