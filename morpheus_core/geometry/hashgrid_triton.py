@@ -132,17 +132,25 @@ def _axis_weights(f0, f1, f2, CORNER: tl.constexpr):
 
 
 @_jit
-def _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
-                   F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
+def _level_setup(x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK: tl.constexpr):
+    """One level's constants, the points' cells and fractions in it, and which points it touches: a
+    masked level (m = 0) reads and scatters nothing. (m is broadcast first: the interpreter cannot
+    `&` a scalar bool with a block.)"""
     scale = tl.load(scale_ptr + level)
     res = tl.load(res_ptr + level)
     rows = tl.load(rows_ptr + level)
     offset = tl.load(offset_ptr + level)
     m = tl.load(mask_ptr + level)
     c0, c1, c2, f0, f1, f2 = _level_frame(x0, x1, x2, scale)
-    # A masked level reads nothing: its features are 0. (m is broadcast first: the interpreter cannot
-    # `&` a scalar bool with a block.)
     active = valid & ((tl.zeros([BLOCK], dtype=tl.float32) + m) != 0.0)
+    return scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active
+
+
+@_jit
+def _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
+                   F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
+    _scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active = _level_setup(
+        x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK)
     feats = tl.arange(0, F)
     acc = tl.zeros([BLOCK, F], dtype=tl.float32)
     for corner in tl.static_range(8):
@@ -179,13 +187,8 @@ def _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table
                     rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr, BLOCK: tl.constexpr,
                     HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
     """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution."""
-    scale = tl.load(scale_ptr + level)
-    res = tl.load(res_ptr + level)
-    rows = tl.load(rows_ptr + level)
-    offset = tl.load(offset_ptr + level)
-    m = tl.load(mask_ptr + level)
-    c0, c1, c2, f0, f1, f2 = _level_frame(x0, x1, x2, scale)
-    active = valid & ((tl.zeros([BLOCK], dtype=tl.float32) + m) != 0.0)  # masked level: scatters nothing
+    scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active = _level_setup(
+        x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK)
     feats = tl.arange(0, F)
     g_ptrs = grad_out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
     g = tl.load(g_ptrs, mask=active[:, None], other=0.0).to(tl.float32) * m
