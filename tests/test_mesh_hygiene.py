@@ -82,7 +82,7 @@ def test_tiny_separate_sphere_is_dropped_and_the_rest_compacted(seed: int) -> No
     assert float(areas[0]) > float(areas[1])  # label 0 is the largest
     assert int((labels == 1).sum()) == len(tiny_f)
 
-    # The tiny sphere's share is at most about (0.05 / 0.3)² ≈ 0.028, so 0.05 always drops it.
+    # The tiny sphere's share is at most (0.05 / 0.3)² · area(ico1) / area(ico3) ≈ 0.026, so 0.05 always drops it.
     share = float(areas[1] / areas.sum())
     assert share < 0.05, _report_seed(seed)
     clean, report = drop_floaters(mesh, 0.05)
