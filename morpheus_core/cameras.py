@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import to_device
 from morpheus_core.geometry.mesh import safe_normalize
 
 
@@ -112,7 +113,7 @@ class Cameras:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> Cameras:
         def move(t: Tensor) -> Tensor:
-            return t.to(device=device, dtype=dtype)
+            return to_device(t, device, dtype)
 
         return Cameras(
             move(self.c2w), move(self.fov_y), move(self.elevation), move(self.azimuth), move(self.distance),

@@ -1,4 +1,5 @@
-"""Which torch device a configuration's device name means, and whether its kernels are compiled."""
+"""Which torch device a configuration's device name means, whether its kernels are compiled, and
+how host-drawn random values reach it without stalling the host."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch import Tensor
 
 # ``torch.compile`` of hot pure-tensor kernels (the hash-grid encode): on CUDA only — it fuses the
 # gather/weight arithmetic into a few Triton kernels (DESIGN.md §7: 14 → 2 ms per 2^18 points) —
@@ -36,3 +38,26 @@ def pick_device(name: str) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device {name!r} requested but CUDA is not available; use device=cpu or auto")
     return dev
+
+
+def draws_on(generator: torch.Generator | None, device: torch.device) -> torch.Generator | None:
+    """A generator on ``device`` for a large random draw, seeded by one 64-bit draw from ``generator``
+    (on the host, no sync): the NeRF stage's 4M jitter values per render are then drawn where they are
+    used, not on the CPU and copied (a pageable copy also waits for the GPU to drain). The draw stays
+    a function of ``generator``'s state, so a resumed run repeats it; on ``generator``'s own device
+    (or without one) it is ``generator`` itself."""
+    if generator is None or generator.device.type == torch.device(device).type:
+        return generator
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+def to_device(t: Tensor, device: torch.device | str | None, dtype: torch.dtype | None = None) -> Tensor:
+    """``t`` on ``device``: a CPU tensor headed for CUDA goes through pinned memory with a
+    non-blocking copy, because a copy from pageable memory makes the host wait until the GPU has
+    drained its queue (a stall per random draw). The caching host allocator keeps the pinned block
+    alive until the copy has run."""
+    target = torch.device(device) if device is not None else t.device
+    if t.device.type == "cpu" and target.type == "cuda":
+        return (t if dtype is None else t.to(dtype)).pin_memory().to(target, non_blocking=True)
+    return t.to(device=target, dtype=dtype)

@@ -14,6 +14,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import to_device
+
 Weighting = Literal["one_minus_alpha_bar", "uniform"]
 
 
@@ -131,4 +133,4 @@ def sample_timesteps(
     t_lo, t_hi = t_range.integer_bounds(step, num_timesteps)
     gen_device = generator.device if generator is not None else "cpu"
     t = torch.randint(t_lo, t_hi + 1, (batch,), generator=generator, device=gen_device)
-    return t.to(device)
+    return to_device(t, device)

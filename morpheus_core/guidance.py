@@ -25,6 +25,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import to_device
 from morpheus_core.diffusion import NoiseSchedule, TimestepRange, Weighting, sample_timesteps, work_dtype
 from morpheus_core.frequency import BandMask, filter_residual
 from morpheus_core.loss_balance import reference_loss
@@ -184,7 +185,7 @@ def _sanitize(g: Tensor, clip: float | None) -> Tensor:
 def _randn_like(z0: Tensor, generator: torch.Generator | None) -> Tensor:
     # Draw where the generator lives (a CPU generator keeps runs reproducible across devices).
     device = generator.device if generator is not None else z0.device
-    return torch.randn(z0.shape, generator=generator, dtype=work_dtype(z0), device=device).to(z0.device)
+    return to_device(torch.randn(z0.shape, generator=generator, dtype=work_dtype(z0), device=device), z0.device)
 
 
 def _draw(

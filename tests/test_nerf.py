@@ -44,3 +44,25 @@ def test_progressive_levels_follow_the_step() -> None:
     assert field.encoding.active_levels == 8
     field.update_step(3000)
     assert field.encoding.active_levels == 10
+
+
+def test_the_nerf_stage_on_padded_sample_buffers_logs_drops_and_matches_the_exact_gather(tmp_path) -> None:
+    """The CUDA default (``sample_buffer=padded``) forced on the CPU: the stage runs, its run log counts
+    the samples a full buffer dropped, and with none dropped it learns what the exact gather learns."""
+    from assets_store.runlog import read_runlog
+    from assets_store.store import Store
+    from ops.engine.pipeline import run_photo
+    from tests.pipeline_helpers import PHOTOS, tiny_config
+
+    logs = {}
+    for mode in ("exact", "padded"):
+        cfg = tiny_config(f"nerf.render.sample_buffer={mode}", "nerf.occupancy.update_every=3", nerf=10)
+        store = Store(tmp_path / mode)
+        out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", "mug.jpg", until="nerf")
+        assert out.error is None, out.error
+        logs[mode] = read_runlog(store.stage_dir("mug.jpg", "nerf") / "runlog.parquet")
+    dropped = [r["samples_dropped"] for r in logs["padded"]]
+    assert all(d is not None and d >= 0 for d in dropped) and "samples_dropped" not in logs["exact"][0]
+    if dropped[-1] == 0:
+        for a, b in zip(logs["exact"], logs["padded"], strict=True):
+            assert abs(a["ref_psnr"] - b["ref_psnr"]) < 1e-3

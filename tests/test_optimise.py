@@ -35,13 +35,14 @@ class Regression:
     ``poison`` maps step → what goes wrong there: "loss" (NaN loss), "grad" (Inf gradient),
     "prior" (a prior reported NaN values), "bad" (the step raises BadStep)."""
 
-    def __init__(self, seed: int, poison: dict[int, str] | None = None) -> None:
+    def __init__(self, seed: int, poison: dict[int, str] | None = None, fused: bool = False) -> None:
         g = torch.Generator().manual_seed(seed)
         self.x = torch.randn(256, 4, generator=g)
         self.y = torch.sin(self.x @ torch.randn(4, 2, generator=g))
         torch.manual_seed(seed)
         self.net = nn.Sequential(nn.Linear(4, 16), nn.Tanh(), nn.Linear(16, 2))
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=1e-2)
+        # fused: the optimiser skips bad steps on a device flag; else the loop asks the host
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=1e-2, fused=fused)
         self.poison = poison or {}
         self.after: list[bool] = []
 
@@ -60,8 +61,8 @@ class Regression:
             loss = loss + _InfGradient.apply(self.net[0].weight)
         return StepOutput(loss, {"mse": loss.detach()}, 5 if kind == "prior" else 0)
 
-    def after_step(self, ok: bool) -> None:
-        self.after.append(ok)
+    def after_step(self, ok: torch.Tensor | bool) -> None:
+        self.after.append(bool(ok))
 
     def state(self) -> dict[str, Any]:
         return {"net": self.net.state_dict(), "opt": self.opt.state_dict()}
@@ -116,10 +117,14 @@ def test_resume_from_checkpoint_is_bit_identical(tmp_path: Path) -> None:
     assert [r["step"] for r in res.history] == list(range(1, 24))
 
 
+FUSED = pytest.mark.parametrize("fused", [False, True], ids=["host-skip", "device-skip"])
+
+
+@FUSED
 @pytest.mark.parametrize("kind,counter", [("loss", "nonfinite_loss"), ("grad", "nonfinite_grad"),
                                           ("prior", "nonfinite_prior"), ("bad", "bad_step")])
-def test_bad_steps_are_skipped_and_counted(kind: str, counter: str, tmp_path: Path) -> None:
-    task = Regression(2, {4: kind, 9: kind})
+def test_bad_steps_are_skipped_and_counted(kind: str, counter: str, fused: bool, tmp_path: Path) -> None:
+    task = Regression(2, {4: kind, 9: kind}, fused)
     res = _run(task, 15, tmp_path)
     assert getattr(res.guards, counter) == 2 and res.guards.skipped == 2 and res.guards.restores == 0
     assert task.after.count(False) == 2
@@ -130,23 +135,45 @@ def test_bad_steps_are_skipped_and_counted(kind: str, counter: str, tmp_path: Pa
         assert rows[5]["loss"] is None  # a non-finite value is logged as missing, never as NaN
 
 
-def test_a_skipped_step_changes_nothing() -> None:
-    clean, poisoned = Regression(4), Regression(4, {0: "grad"})
+@FUSED
+def test_a_skipped_step_changes_nothing(fused: bool) -> None:
+    clean, poisoned = Regression(4, fused=fused), Regression(4, {0: "grad"}, fused)
     gen = torch.Generator().manual_seed(5)
     run_loop(poisoned, LoopConfig(1, log_every=1, grad_clip=None), gen, "t")
     for a, b in zip(_params(clean), _params(poisoned), strict=True):
         assert torch.equal(a, b)
+    assert not poisoned.opt.state_dict()["state"] or float(poisoned.opt.state_dict()["state"][0]["step"]) == 0
 
 
-def test_repeated_failures_restore_the_last_good_state(tmp_path: Path) -> None:
-    task = Regression(6, {s: "loss" for s in range(12, 18)})
+@pytest.mark.parametrize("kind", ["loss", "grad", "prior", "bad"])
+def test_guards_read_every_n_steps_give_the_same_run_as_every_step(kind: str) -> None:
+    """The device-skip path reads its guards at log rows only; skipping is decided on the device, so
+    the parameters, optimiser state and counts equal those of a run that reads them every step."""
+    runs = []
+    for log_every in (1, 7):
+        task = Regression(9, {3: kind, 4: kind, 11: kind}, fused=True)
+        res = run_loop(task, LoopConfig(20, log_every=log_every, grad_clip=1.0, early_stop=False),
+                       torch.Generator().manual_seed(2), "t")
+        runs.append((task, res))
+    (a, ra), (b, rb) = runs
+    assert ra.guards == rb.guards and ra.guards.skipped == 3 and ra.guards.restores == 0
+    for x, y in zip(_params(a), _params(b), strict=True):
+        assert torch.equal(x, y)
+    assert float(a.opt.state_dict()["state"][0]["step"]) == float(b.opt.state_dict()["state"][0]["step"]) == 17
+    assert a.after == b.after and a.after.count(False) == 3
+
+
+@FUSED
+def test_repeated_failures_restore_the_last_good_state(fused: bool, tmp_path: Path) -> None:
+    task = Regression(6, {s: "loss" for s in range(12, 18)}, fused)
     res = _run(task, 20, tmp_path, every=10)
     assert res.guards.nonfinite_loss == 6 and res.guards.restores == 2  # 3 bad in a row → restore, twice
     assert all(torch.isfinite(p).all() for p in task.net.parameters())
 
 
-def test_parameters_that_turn_nonfinite_are_rolled_back() -> None:
-    task = Regression(7)
+@FUSED
+def test_parameters_that_turn_nonfinite_are_rolled_back(fused: bool) -> None:
+    task = Regression(7, fused=fused)
     real_step = task.opt.step
 
     def exploding_step(*args: Any, **kwargs: Any) -> Any:
@@ -185,9 +212,10 @@ def test_loop_config_rejects_nonsense() -> None:
         LoopConfig(10, fp16_loss_scale=float("inf"))
 
 
+@FUSED
 @pytest.mark.parametrize("precision", ["bfloat16", "float16"])
-def test_half_precision_steps_learn_and_keep_float32_parameters(precision: str) -> None:
-    task = Regression(5)
+def test_half_precision_steps_learn_and_keep_float32_parameters(precision: str, fused: bool) -> None:
+    task = Regression(5, fused=fused)
     res = run_loop(task, LoopConfig(150, log_every=1, grad_clip=None, precision=precision),  # type: ignore[arg-type]
                    torch.Generator().manual_seed(3), "test")
     assert res.guards.skipped == 0
@@ -219,7 +247,8 @@ def test_float16_loss_scaling_keeps_tiny_gradients_and_unscales_them() -> None:
     assert unscaled_error > 10 * float((scaled - ref).abs().max())
 
 
-def test_float16_loss_scale_backs_off_after_an_overflow_and_the_run_still_learns() -> None:
+@FUSED
+def test_float16_loss_scale_backs_off_after_an_overflow_and_the_run_still_learns(fused: bool) -> None:
     """A loss whose scaled gradients overflow float16 (65504): the first steps are skipped while the
     scale halves, then the run learns."""
 
@@ -228,8 +257,9 @@ def test_float16_loss_scale_backs_off_after_an_overflow_and_the_run_still_learns
             out = super().step(step, generator)
             return StepOutput(out.loss * 3e3, out.terms, 0)
 
-    task = Loud(4)
-    res = run_loop(task, LoopConfig(200, log_every=1, grad_clip=None, precision="float16", max_bad_steps=50),
+    task = Loud(4, fused=fused)
+    config = LoopConfig(200, log_every=10 if fused else 1, grad_clip=None, precision="float16", max_bad_steps=50)
+    res = run_loop(task, config,
                    torch.Generator().manual_seed(3), "test")
     assert 1 <= res.guards.nonfinite_grad <= 16, res.guards
     assert res.history[-1]["full_mse"] < 0.5 * res.history[0]["full_mse"]

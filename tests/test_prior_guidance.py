@@ -56,7 +56,7 @@ def test_morpheus3d_stage2_3d_sds_full_pass_plus_2d_vsd_high_pass(rig) -> None:
     for oid in IDS:  # the ε-MSE reached both objects' adapters, and only the adapters
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in loras2d.parameters(oid))
     assert not any(p.requires_grad for p in zero123.unet.parameters())
-    assert loras2d.step() == ()
+    assert not loras2d.step().any()
 
 
 def test_magic123_configuration(rig) -> None:
@@ -82,7 +82,7 @@ def test_vsd_configuration(rig, role: str) -> None:
         config = vsd(PRIOR_2D, cfg_scale=2.0)
     try:
         out, _ = _step(config, bindings, seed=3)
-        assert float(out.finetune_loss.detach()) > 0 and loras.step() == ()
+        assert float(out.finetune_loss.detach()) > 0 and not loras.step().any()
     finally:
         if role == PRIOR_3D:  # the Zero123 fixture is shared: leave it without adapters
             for oid in IDS:

@@ -14,6 +14,7 @@ from morpheus_core.geometry.nerf import FieldSample, NerfConfig, NerfField
 from morpheus_core.render.volume import (
     OccupancyGrid,
     OccupancyGridConfig,
+    SampleBudget,
     VolumeRenderConfig,
     ray_box,
     render_silhouette,
@@ -223,3 +224,69 @@ def test_training_renders_skip_samples_behind_opaque_surfaces(device: torch.devi
     assert (full[0] - culled[0]).abs().max() < 1e-3 and (full[1] - culled[1]).abs().max() < 1e-3
     for a, b in zip(full[2:], culled[2:], strict=True):
         assert torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0) > 0.999
+
+
+def _grid_for(field: NerfField, device: torch.device, seed: int) -> OccupancyGrid:
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=16, density_threshold=1e-3), field.bbox_radius).to(device)
+    grid.refresh(field, torch.Generator().manual_seed(seed))
+    return grid
+
+
+def _render_and_grads(field: NerfField, cams, grid: OccupancyGrid, budget: SampleBudget | None, seed: int):
+    cfg = VolumeRenderConfig(n_samples=40, with_normals=True, normal_weight_threshold=1e-4)
+    field.zero_grad()
+    out = render_volume(field, cams, 16, 16, cfg, occupancy=grid, generator=torch.Generator().manual_seed(seed),
+                        budget=budget)
+    target = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(seed + 1)).to(out.rgb.device)
+    ((out.rgb - target) ** 2).mean().add(out.normal.square().mean()).backward()
+    return out, [p.grad.clone() for p in field.parameters()]
+
+
+@pytest.mark.parametrize("seed", [0, secrets.randbits(31)])
+def test_padded_sample_buffers_render_and_backpropagate_like_the_exact_gather(seed: int,
+                                                                              device: torch.device) -> None:
+    field = small_nerf(seed % 1000).to(device)
+    cams = sample_orbit(2, generator=torch.Generator().manual_seed(seed)).to(device)
+    grid = _grid_for(field, device, seed)
+    exact, exact_grads = _render_and_grads(field, cams, grid, None, seed)
+    budget = SampleBudget(headroom=1.0, quantum=64)
+    _render_and_grads(field, cams, grid, budget, seed)  # the first render: buffers hold every sample
+    assert set(budget.adapt()) == {"render", "render/normals"}
+    assert budget.capacity["render"] < 2 * 16 * 16 * 40  # sized from what the grid keeps, not the box
+    padded, padded_grads = _render_and_grads(field, cams, grid, budget, seed)
+    assert int(budget.dropped()) == 0
+    for name in ("rgb", "opacity", "depth", "normal"):
+        torch.testing.assert_close(getattr(padded, name), getattr(exact, name), rtol=1e-5, atol=1e-6)
+    for a, b in zip(padded_grads, exact_grads, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
+
+
+def test_a_full_sample_buffer_drops_the_deepest_samples_and_counts_them() -> None:
+    g = torch.Generator().manual_seed(secrets.randbits(31))
+    keep = torch.rand(37, 11, generator=g) < 0.6
+    count = int(keep.sum())
+    budget = SampleBudget(headroom=1.0, quantum=1)
+    budget.capacity["k"] = cap = count - 5
+    index, counted = budget.gather("k", keep)
+    assert int(counted) == count and index.shape == (cap,)
+    # the first ``cap`` kept samples in sample order (all rays' sample 0, then sample 1, …)
+    rays, samples = keep.t().nonzero(as_tuple=True)
+    expected = (samples * 11 + rays)[:cap]
+    assert torch.equal(index, expected)
+    assert int(budget.dropped()) == 5
+    budget.capacity["k"] = count + 3  # room to spare: every kept sample, then padding
+    index, _ = budget.gather("k", keep)
+    assert torch.equal(index[:count], (samples * 11 + rays)) and bool((index[count:] == keep.numel()).all())
+    assert budget.adapt() == {"k": 5}
+    assert budget.capacity["k"] == count and budget.dropped() is None  # peak × headroom 1, quantum 1
+
+
+def test_sample_budget_rounds_capacity_up_and_rejects_nonsense() -> None:
+    budget = SampleBudget(headroom=1.25, quantum=100)
+    budget.gather("k", torch.ones(10, 33, dtype=torch.bool))
+    budget.adapt()
+    assert budget.capacity["k"] == 500  # 330 · 1.25 = 412.5 → 500
+    with pytest.raises(ValueError, match="headroom"):
+        SampleBudget(headroom=0.5)
+    with pytest.raises(ValueError, match="sample_buffer"):
+        VolumeRenderConfig(sample_buffer="fast")  # type: ignore[arg-type]

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from morpheus_core.atomic_io import atomic_write
+from morpheus_core.device_skip import nonfinite, step_or_skip
 from morpheus_core.priors.runtime import PriorRuntime
 
 
@@ -111,7 +112,8 @@ class ObjectLoras:
             for p in self.parameters(oid):
                 p.data = p.data.float()  # Adam state and updates in float32 under a half UNet
                 p.requires_grad_(True)
-        self._optimizers[object_id] = torch.optim.Adam(self.parameters(object_id), lr=s.lr, betas=s.betas)
+        self._optimizers[object_id] = torch.optim.Adam(self.parameters(object_id), lr=s.lr, betas=s.betas,
+                                                       fused=True)
 
     def remove(self, object_id: str) -> None:
         name = self._require([object_id])[0]
@@ -160,21 +162,27 @@ class ObjectLoras:
 
     # -- optimisation ---------------------------------------------------------------------------
 
-    def step(self, object_ids: Sequence[str] | None = None) -> tuple[str, ...]:
-        """One Adam step per object (of ``object_ids``, default all) that received gradients;
-        returns objects skipped because their gradients were not finite (a half-precision overflow
-        must not corrupt an adapter)."""
+    def step(self, object_ids: Sequence[str] | None = None, ok: Tensor | bool = True) -> Tensor:
+        """One Adam step per object (of ``object_ids``, default all) that received gradients, unless
+        ``ok`` is false or the object's gradients are not finite (a half-precision overflow must not
+        corrupt an adapter). Decided on the device (``morpheus_core.device_skip``); returns per object
+        whether its step was skipped (a bool tensor, in order)."""
+        ids = tuple(object_ids) if object_ids is not None else tuple(self._optimizers)
+        self._require(ids)
+        device = self.host.runtime.torch_device
         skipped = []
-        self._require(object_ids or ())
-        for oid in object_ids if object_ids is not None else tuple(self._optimizers):
+        for oid in ids:
             opt = self._optimizers[oid]
             grads = [p.grad for p in self.parameters(oid) if p.grad is not None]
-            if grads and not bool(torch.isfinite(torch.stack([g.abs().amax() for g in grads])).all()):
-                skipped.append(oid)
-            elif grads:
-                opt.step()
+            if not grads or ok is False:
+                skipped.append(torch.full((), bool(grads), dtype=torch.bool, device=device))
+            else:
+                bad = nonfinite(grads, device)
+                bad = bad if ok is True else bad | ~ok  # type: ignore[operator]
+                step_or_skip(opt, bad)
+                skipped.append(bad)
             opt.zero_grad(set_to_none=True)
-        return tuple(skipped)
+        return torch.stack(skipped) if skipped else torch.zeros(0, dtype=torch.bool, device=device)
 
     # -- checkpoints ----------------------------------------------------------------------------
 

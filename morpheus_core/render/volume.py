@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from morpheus_core.cameras import Cameras
+from morpheus_core.devices import draws_on
 from morpheus_core.geometry.nerf import FieldSample, RadianceField
 from morpheus_core.render.output import RenderOutput
 
@@ -47,12 +49,18 @@ class VolumeRenderConfig:
     """Normals only where a sample's compositing weight (its share of the normal) exceeds this; 0: everywhere."""
     transmittance_threshold: float = 0.0
     """> 0: training renders evaluate only samples whose transmittance (no-grad density probe) exceeds it; 0: off."""
+    sample_buffer: Literal["auto", "exact", "padded"] = "auto"
+    """How training renders gather the samples to evaluate: ``exact`` (the kept ones; a host sync per
+    gather), ``padded`` (a fixed-size buffer sized by ``SampleBudget``: no sync, shapes that stay put);
+    auto: padded on CUDA, exact on the CPU (no GPU to wait for, and the padding costs there)."""
 
     def __post_init__(self) -> None:
         if self.n_samples < 1 or self.chunk_points < 1:
             raise ValueError("n_samples and chunk_points must be ≥ 1")
         if self.max_density <= 0:
             raise ValueError("max_density must be positive")
+        if self.sample_buffer not in ("auto", "exact", "padded"):
+            raise ValueError(f"sample_buffer must be auto, exact or padded, got {self.sample_buffer!r}")
         for name in ("normal_weight_threshold", "transmittance_threshold"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
@@ -108,7 +116,7 @@ class OccupancyGrid(nn.Module):
         device = self.density.device
         axis = torch.arange(n, device=device, dtype=torch.float32)
         cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-        jitter = torch.rand(cells.shape, generator=generator, dtype=torch.float32).to(device)
+        jitter = torch.rand(cells.shape, generator=draws_on(generator, device), dtype=torch.float32, device=device)
         points = ((cells + jitter) / n * 2 - 1) * self.bbox_radius
         fresh = torch.cat([field.density(c).float() for c in points.split(1 << 18)]).reshape(n, n, n)
         fresh = torch.nan_to_num(fresh, nan=0.0, posinf=torch.finfo(fresh.dtype).max)
@@ -155,6 +163,83 @@ def _query(
     return density, albedo, normal
 
 
+class SampleBudget:
+    """Fixed-size sample buffers for a task's training renders, one per named gather.
+
+    A padded gather evaluates the field on exactly ``capacity`` samples whatever the occupancy grid
+    keeps, so no step has to ask the host how many there are. Kept samples are taken in sample
+    order (every ray's first sample, then every ray's second, …), so when more are kept than fit
+    the ones dropped are the deepest, behind what the ray has most likely hit already; how many
+    were dropped is counted on the device. ``adapt`` (one host read, every few steps: the NeRF
+    stage calls it at each occupancy refresh) resizes each buffer to ``headroom`` × the most
+    samples it was asked for since, rounded up to ``quantum``, so shapes change rarely. Until the
+    first ``adapt`` a buffer holds every sample of its rays: nothing is ever dropped before the
+    grid has been measured.
+    """
+
+    def __init__(self, headroom: float = 1.25, quantum: int = 1 << 16) -> None:
+        if not headroom >= 1.0 or quantum < 1:
+            raise ValueError(f"headroom must be ≥ 1 and quantum ≥ 1, got {headroom} and {quantum}")
+        self.headroom, self.quantum = headroom, quantum
+        self.capacity: dict[str, int] = {}
+        self._peak: dict[str, Tensor] = {}
+        self._dropped: dict[str, Tensor] = {}
+
+    def gather(self, name: str, keep: Tensor) -> tuple[Tensor, Tensor]:
+        """Flat indices (into ``keep``, (R, S) ray-major) of up to ``capacity`` kept samples, padded
+        with ``keep.numel()`` (a slot whose result is discarded), and the kept count (device)."""
+        r, s = keep.shape
+        n = r * s
+        cap = min(self.capacity.get(name, n), n)
+        order = keep.t().reshape(-1)
+        pos = torch.cumsum(order, 0) - 1
+        count = pos[-1] + 1
+        slot = torch.where(order & (pos < cap), pos, cap)
+        flat = torch.arange(n, device=keep.device).reshape(r, s).t().reshape(-1)
+        index = torch.full((cap + 1,), n, dtype=torch.long, device=keep.device).scatter_(0, slot, flat)[:cap]
+        zero = torch.zeros((), dtype=count.dtype, device=keep.device)
+        self._peak[name] = torch.maximum(self._peak.get(name, zero), count)
+        self._dropped[name] = self._dropped.get(name, zero) + (count - cap).clamp_min(0)
+        return index, count
+
+    def dropped(self) -> Tensor | None:
+        """Samples dropped for want of room, summed over the buffers since the last ``adapt`` (device)."""
+        return torch.stack(list(self._dropped.values())).sum() if self._dropped else None
+
+    def adapt(self) -> dict[str, int]:
+        """Resize every buffer from the peak count since the last call (one host read); returns and
+        forgets the samples dropped meanwhile, per buffer."""
+        if not self._peak:
+            return {}
+        names = list(self._peak)
+        values = torch.stack([self._peak[k] for k in names] + [self._dropped[k] for k in names]).tolist()
+        for name, peak in zip(names, values[:len(names)], strict=True):
+            self.capacity[name] = max(self.quantum, math.ceil(peak * self.headroom / self.quantum) * self.quantum)
+        dropped = dict(zip(names, (int(v) for v in values[len(names):]), strict=True))
+        self._peak.clear()
+        self._dropped.clear()
+        return dropped
+
+
+def _query_padded(
+    field: RadianceField, points: Tensor, index: Tensor, with_normals: bool, chunk: int
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """``_query`` on the samples ``index`` names (``SampleBudget.gather``): padding slots evaluate a
+    dummy point whose results land in a slot that is cut off."""
+    n = points.shape[0]
+    padded = torch.cat((points, points.new_zeros(1, 3)))
+    samples: list[FieldSample] = [field.query(padded[i], with_normals) for i in index.split(chunk)]
+
+    def place(values: list[Tensor], width: int | None) -> Tensor:
+        shape = (n + 1,) if width is None else (n + 1, width)
+        return points.new_zeros(shape).index_put((index,), torch.cat(values).to(points.dtype))[:n]
+
+    density = place([x.density for x in samples], None)
+    albedo = place([x.albedo for x in samples], 3)
+    normal = place([x.normal for x in samples], 3) if with_normals else None  # type: ignore[misc]
+    return density, albedo, normal
+
+
 @torch.no_grad()
 def _visible(field: RadianceField, points: Tensor, keep: Tensor, step: Tensor, config: VolumeRenderConfig) -> Tensor:
     """``keep`` (R, S) without the samples whose transmittance is already below the threshold."""
@@ -180,9 +265,19 @@ def render_volume(
     background: Tensor | float | tuple[float, float, float] = 1.0,
     occupancy: OccupancyGrid | None = None,
     generator: torch.Generator | None = None,
+    budget: SampleBudget | None = None,
+    budget_key: str = "render",
 ) -> RenderOutput:
-    """Render ``field`` from every camera: rgb on ``background``, opacity, depth, normal."""
+    """Render ``field`` from every camera: rgb on ``background``, opacity, depth, normal. With a
+    ``budget``, the field is evaluated on its padded buffers ``budget_key`` (and ``…/normals``)."""
     config = config or VolumeRenderConfig()
+
+    def query(keep: Tensor, normals: bool, key: str) -> tuple[Tensor, Tensor, Tensor | None]:
+        if budget is None:
+            return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
+        index, _ = budget.gather(key, keep.reshape(-1, s))
+        return _query_padded(field, flat, index, normals, config.chunk_points)
+
     origins, dirs = cameras.rays(height, width)
     batch = len(cameras)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
@@ -190,7 +285,7 @@ def render_volume(
     s = config.n_samples
     u = torch.arange(s, dtype=o.dtype, device=o.device)
     if config.stratified:
-        u = u + torch.rand((o.shape[0], s), generator=generator, dtype=o.dtype).to(o.device)
+        u = u + torch.rand((o.shape[0], s), generator=draws_on(generator, o.device), dtype=o.dtype, device=o.device)
     else:
         u = (u + 0.5).expand(o.shape[0], s)
     step = ((far - near) / s).unsqueeze(-1)  # δ per ray: the bin width
@@ -202,7 +297,7 @@ def render_volume(
     flat = points.reshape(-1, 3)
     if config.transmittance_threshold > 0 and torch.is_grad_enabled():
         keep = _visible(field, flat, keep, step, config)
-    density, albedo, _ = _query(field, flat, keep.reshape(-1), False, config.chunk_points)
+    density, albedo, _ = query(keep, False, budget_key)
     density = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(-1, s)
     tau = density * step
     cum = torch.cumsum(tau, -1)
@@ -214,7 +309,7 @@ def render_volume(
     depth = (weights * t).sum(-1, keepdim=True)
     if config.with_normals:
         visible = keep.reshape(-1) & (weights.detach().reshape(-1) > config.normal_weight_threshold)
-        _, _, normal = _query(field, flat, visible, True, config.chunk_points)
+        _, _, normal = query(visible, True, f"{budget_key}/normals")
         nrm = (weights.unsqueeze(-1) * normal.reshape(-1, s, 3)).sum(1)  # type: ignore[union-attr]
     else:
         nrm = torch.zeros_like(rgb)

@@ -119,9 +119,9 @@ class BatchTask:
         terms = {f"{i}/{k}": v for i, r in zip(live, rendered, strict=True) for k, v in r.terms.items()}
         return step_output(out, extra, terms, bool(lead.guidance.needs_finetuned))
 
-    def after_step(self, ok: bool) -> None:
+    def after_step(self, ok: Tensor | bool) -> None:
         for i, task in enumerate(self.tasks):
-            task.after_step(ok and i in self._live)
+            task.after_step(ok if i in self._live else False)
 
     def state(self) -> dict[str, Any]:
         return {"objects": [t.state() for t in self.tasks], "generators": [g.get_state() for g in self.generators],

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -30,8 +30,9 @@ from ops.engine.target import ReferenceTarget, reference_psnr
 
 
 def adam(groups: list[dict[str, Any]]) -> torch.optim.Adam:
-    """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move."""
-    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+    """The paper's Adam (0.9, 0.99); eps 1e-15 as in instant-ngp, so tiny hash-grid gradients move.
+    Fused: one kernel for all parameters, and it skips a bad step on a device flag (``ops.engine.loop``)."""
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=True)
 
 
 @dataclass
@@ -61,7 +62,9 @@ class GuidedTask(ABC):
                  modules: dict[str, nn.Module], groups: list[dict[str, Any]], device: torch.device) -> None:
         self.target, self.suite, self.device = target, suite, device
         self.modules = modules
-        self.guidance = guidance.build(steps)
+        # The loop's device-side guards skip a step with a non-finite render (its prior outputs or its
+        # loss are then non-finite); the guidance's own check would stop the host three times a step.
+        self.guidance = replace(guidance.build(steps), check_inputs=False)
         self.schedule = NoiseSchedule()
         self.opt = adam(groups)
 
@@ -83,7 +86,7 @@ class GuidedTask(ABC):
     def render_eval(self, cameras: Any, size: int | None = None) -> RenderOutput:
         """A deterministic render (no generator) for previews and the run log."""
 
-    def after_step(self, ok: bool) -> None:
+    def after_step(self, ok: Tensor | bool) -> None:
         self.suite.after_step(ok)
 
     def state(self) -> dict[str, Any]:

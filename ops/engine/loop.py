@@ -8,10 +8,13 @@ Resume is exact: a checkpoint holds the task state (parameters, optimiser moment
 occupancy grids…), both random generators, the step, the loss history and the guard counters,
 so a run killed at any point and restarted replays the same updates (bit-identical on CPU).
 
-Guards: a step whose loss, prior output or gradients hold NaN/Inf is skipped (no update), and one
-that leaves non-finite parameters is rolled back at once. After ``max_bad_steps`` consecutive bad
-steps the last good state (the newest checkpoint, or the start) is restored. Every event is
-counted; ``NonFiniteStateError`` from the checkpoint writer guarantees no NaN is ever saved.
+Guards: a step whose loss, prior output or gradients hold NaN/Inf is skipped (no update). The
+decision is made on the device: fused optimisers skip on a device flag (``morpheus_core.device_skip``), so a step
+needs no host sync; the counts are read at log and checkpoint rows. There, parameters a step left
+non-finite, or a run of ``max_bad_steps`` bad steps still going, restore the last good state (the
+newest checkpoint, or the start); skipped steps change nothing, so finding them a few steps late
+loses nothing. Every event is counted; ``NonFiniteStateError`` from the checkpoint writer
+guarantees no NaN is ever saved.
 
 Early stopping: at each log row the task says whether its scene has converged
 (``ops.engine.early_stop``); the loop then ends before ``steps`` and the result says where.
@@ -31,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from assets_store.checkpoints import Checkpoints
+from morpheus_core.device_skip import nonfinite, step_or_skip
 
 _AUTOCAST: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 
@@ -109,9 +113,10 @@ class StageTask(Protocol):
 
     def step(self, step: int, generator: torch.Generator) -> StepOutput: ...
 
-    def after_step(self, ok: bool) -> None:
+    def after_step(self, ok: Tensor | bool) -> None:
         """Updates outside the main optimisers (e.g. the VSD LoRA) after a good step; after a bad
-        one, drop whatever gradients they received."""
+        one, drop whatever gradients they received. ``ok`` is a bool on the device when the step ran
+        (``morpheus_core.device_skip`` applies it without a host sync), False when it raised ``BadStep``."""
 
     def state(self) -> dict[str, Any]: ...
 
@@ -182,24 +187,60 @@ def _clone(state: Any) -> Any:
     return copy.deepcopy(state)
 
 
-@dataclass
 class _LossScale:
-    """The float16 loss scale (see ``LoopConfig.precision``); 1 and inert for other precisions."""
+    """The float16 loss scale (see ``LoopConfig.precision``), on the device; 1 and inert otherwise."""
 
-    value: float
-    enabled: bool
-    growth_interval: int
-    good: int = 0
+    def __init__(self, value: float, good: int, enabled: bool, growth_interval: int, device: torch.device) -> None:
+        self.value = torch.tensor(value, dtype=torch.float32, device=device)
+        self.good = torch.tensor(good, dtype=torch.int64, device=device)
+        self.enabled, self.growth_interval = enabled, growth_interval
 
-    def update(self, overflowed: bool) -> None:
+    def update(self, overflowed: Tensor, counted: Tensor) -> None:
+        """Halve on an overflow, double after ``growth_interval`` good steps; steps not ``counted``
+        (skipped before their gradients were checked) leave it as it is."""
         if not self.enabled:
             return
-        if overflowed:
-            self.value, self.good = max(self.value / 2.0, 2.0**-24), 0
-            return
-        self.good += 1
-        if self.good >= self.growth_interval:
-            self.value, self.good = min(self.value * 2.0, 2.0**24), 0
+        good = torch.where(overflowed, 0, self.good + 1)
+        grow = good >= self.growth_interval
+        value = torch.where(overflowed, (self.value / 2).clamp_min(2.0**-24),
+                            torch.where(grow, (self.value * 2).clamp_max(2.0**24), self.value))
+        self.value = torch.where(counted, value, self.value)
+        self.good = torch.where(counted, torch.where(grow, 0, good), self.good)
+
+
+class _Guards:
+    """The guards' per-step findings, counted on the device so that a step needs no host sync; the
+    loop reads them (``read``) at log and checkpoint rows only."""
+
+    def __init__(self, counters: GuardCounters, device: torch.device) -> None:
+        self.counters = counters
+        self.device = device
+        self.pending = torch.zeros(3, dtype=torch.int64, device=device)  # prior, loss, grad
+        self.run = torch.zeros((), dtype=torch.int64, device=device)  # bad steps in a row, now
+
+    def record(self, prior: Tensor, loss: Tensor, grad: Tensor) -> Tensor:
+        """Count one step's (exclusive) causes; returns whether the step was bad."""
+        causes = torch.stack((prior, loss, grad))
+        bad = causes.any()
+        self.pending += causes.long()
+        self.run = (self.run + 1) * bad
+        return bad
+
+    def record_bad_step(self) -> None:
+        self.counters.bad_step += 1
+        self.run = self.run + 1
+
+    def read(self) -> int:
+        """Fold the pending counts into ``counters``; returns the current run of bad steps."""
+        prior, loss, grad, run = torch.cat((self.pending, self.run.reshape(1))).tolist()
+        self.counters.nonfinite_prior += prior
+        self.counters.nonfinite_loss += loss
+        self.counters.nonfinite_grad += grad
+        self.pending.zero_()
+        return int(run)
+
+    def reset_run(self) -> None:
+        self.run = torch.zeros_like(self.run)
 
 
 def _zero_grad(task: StageTask) -> None:
@@ -220,7 +261,7 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
     torch.set_flush_denormal(True)
     ckpts = Checkpoints(checkpoint_dir, keep=config.keep_checkpoints) if checkpoint_dir is not None else None
     history: list[dict[str, Any]] = []
-    guards = GuardCounters()
+    counters = GuardCounters()
     start, resumed_from, wall_before = 0, None, 0.0
     loaded = ckpts.load_latest() if ckpts is not None else None
     if loaded is not None:
@@ -229,36 +270,47 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
         generator.set_state(state["rng"]["generator"])
         torch.set_rng_state(state["rng"]["torch"])
         history = list(state["history"])
-        guards = GuardCounters(**state["guards"])
+        counters = GuardCounters(**state["guards"])
         wall_before = float(state["wall_s"])
         resumed_from = start
+    device = next(_parameters(task)).device
+    guards = _Guards(counters, device)
     half = config.precision == "float16"
-    scale = _LossScale(config.fp16_loss_scale if half else 1.0, half, config.fp16_growth_interval)
+    value, good_steps = config.fp16_loss_scale if half else 1.0, 0
     if loaded is not None and "loss_scale" in state:
-        scale.value, scale.good = float(state["loss_scale"][0]), int(state["loss_scale"][1])
+        value, good_steps = float(state["loss_scale"][0]), int(state["loss_scale"][1])
+    scale = _LossScale(value, good_steps, half, config.fp16_growth_interval, device)
     good = _clone(task.state())
     t0 = time.perf_counter()
-    consecutive = 0
     stopped_at: int | None = None
 
     def elapsed() -> float:
         return wall_before + time.perf_counter() - t0
 
+    def check() -> None:
+        # A run of bad steps that is still going, or parameters a step left non-finite: back to the
+        # last good state. Bad steps changed nothing, so finding them a few steps late loses nothing.
+        run = guards.read()
+        if not _all_finite(list(_parameters(task))):
+            counters.nonfinite_param += 1
+        elif run < config.max_bad_steps:
+            return
+        else:
+            counters.restores += 1
+        task.load_state(_clone(good))
+        guards.reset_run()
+
     for step in range(start, config.steps):
         _zero_grad(task)
         ok, terms = _guarded_step(task, step, generator, config, guards, scale)
         task.after_step(ok)
-        if ok:
-            consecutive = 0
-        else:
-            consecutive += 1
-            if consecutive >= config.max_bad_steps:
-                task.load_state(_clone(good))
-                guards.restores += 1
-                consecutive = 0
         done = step + 1
-        if step % config.log_every == 0 or done == config.steps:
-            row: dict[str, Any] = {"step": done, "wall_s": round(elapsed(), 4), "ok": ok}
+        log_row = step % config.log_every == 0 or done == config.steps
+        save = ckpts is not None and done % config.checkpoint_every == 0 and done < config.steps
+        if log_row or save:
+            check()
+        if log_row:
+            row: dict[str, Any] = {"step": done, "wall_s": round(elapsed(), 4), "ok": bool(ok)}
             row.update({k: _finite_or_none(float(v)) for k, v in terms.items()})
             row.update({k: _finite_or_none(v) for k, v in task.evaluate().items()})
             history.append(row)
@@ -268,59 +320,52 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
             if config.early_stop and done < config.steps and task.stop_early(history, done, config):
                 stopped_at = done
                 break
-        if ckpts is not None and done % config.checkpoint_every == 0 and done < config.steps:
+        if save:
             state = task.state()
-            ckpts.save(done, {
+            ckpts.save(done, {  # type: ignore[union-attr]
                 "task": state,
                 "rng": {"generator": generator.get_state(), "torch": torch.get_rng_state()},
-                "history": history, "guards": vars(guards).copy(), "wall_s": elapsed(),
-                "loss_scale": [scale.value, scale.good],
+                "history": history, "guards": vars(counters).copy(), "wall_s": elapsed(),
+                "loss_scale": [float(scale.value), int(scale.good)],
             })
             good = _clone(state)
     end = config.steps if stopped_at is None else stopped_at
-    return LoopResult(history, guards, resumed_from, max(0, end - start), elapsed(), config.steps, stopped_at)
+    return LoopResult(history, counters, resumed_from, max(0, end - start), elapsed(), config.steps, stopped_at)
+
+
+def _flag(count: Tensor | int, device: torch.device) -> Tensor:
+    """``count > 0`` as a bool on ``device``; a host int becomes a filled tensor, not a (syncing) copy."""
+    if isinstance(count, Tensor):
+        return count.to(device) > 0
+    return torch.full((), count > 0, dtype=torch.bool, device=device)
 
 
 def _guarded_step(task: StageTask, step: int, generator: torch.Generator, config: LoopConfig,
-                  guards: GuardCounters, scale: _LossScale) -> tuple[bool, dict[str, Tensor]]:
+                  guards: _Guards, scale: _LossScale) -> tuple[Tensor | bool, dict[str, Tensor]]:
+    """One step, its guards decided on the device: a bad step's update is skipped by the optimiser."""
     dtype = _AUTOCAST[config.precision]
-    device_type = next(_parameters(task)).device.type
     try:
-        with torch.autocast(device_type, dtype=dtype or torch.float32, enabled=dtype is not None):
+        with torch.autocast(guards.device.type, dtype=dtype or torch.float32, enabled=dtype is not None):
             out = task.step(step, generator)
     except BadStep:
-        guards.bad_step += 1
+        guards.record_bad_step()
         return False, {}
-    terms = {"loss": out.loss.detach(), **out.terms}
-    if int(out.nonfinite_prior) > 0:
-        guards.nonfinite_prior += 1
-        return False, terms
-    if not bool(torch.isfinite(out.loss)):
-        guards.nonfinite_loss += 1
-        return False, terms
-    (out.loss * scale.value).backward()
+    loss = out.loss
+    terms = {"loss": loss.detach(), **out.terms}
+    prior_bad = _flag(out.nonfinite_prior, guards.device)
+    loss_bad = ~torch.isfinite(loss.detach()) & ~prior_bad
+    early = prior_bad | loss_bad
+    if loss.requires_grad:  # a bad loss still back-propagates: its update is skipped below
+        (loss * scale.value if scale.enabled else loss).backward()
     params = [p for p in _parameters(task) if p.grad is not None]
-    overflowed = not _all_finite([p.grad for p in params])
-    scale.update(overflowed)
-    if overflowed:
-        guards.nonfinite_grad += 1
-        _zero_grad(task)
-        return False, terms
-    if scale.value != 1.0:
-        for p in params:
-            p.grad.div_(scale.value)
-        # Adapters outside the task's optimisers (VSD LoRAs) keep scaled gradients: Adam's update
-        # does not depend on a constant scale, and this one changes by ×2 at most every 100 steps.
-    before = [p.detach().clone() for p in params]
+    grad_bad = nonfinite([p.grad for p in params], guards.device, scale.value.reciprocal()) & ~early  # type: ignore[misc]
+    scale.update(grad_bad, ~early)
+    # Adapters outside the task's optimisers (VSD LoRAs) keep scaled gradients: Adam's update does
+    # not depend on a constant scale, and this one changes by ×2 at most every 100 steps.
+    bad = guards.record(prior_bad, loss_bad, grad_bad)
     for opt in task.optimizers().values():
         if config.grad_clip is not None:
             group_params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
             torch.nn.utils.clip_grad_norm_(group_params, config.grad_clip)
-        opt.step()
-    if not _all_finite(params):
-        guards.nonfinite_param += 1
-        with torch.no_grad():  # roll this step back at once; the optimiser moments are already
-            for p, b in zip(params, before, strict=True):  # finite (checked gradients)
-                p.copy_(b)
-        return False, terms
-    return True, terms
+        step_or_skip(opt, bad)
+    return ~bad, terms

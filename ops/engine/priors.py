@@ -105,7 +105,7 @@ class PriorSuite(ABC):
         """Each role's prior, VSD counterpart and condition for this step's cameras and renders."""
 
     # The no-op defaults below are right for suites without trainable state (the proxy).
-    def after_step(self, ok: bool) -> None:  # noqa: B027
+    def after_step(self, ok: Tensor | bool) -> None:  # noqa: B027
         """Step the VSD counterparts after a good step; drop their gradients after a bad one."""
 
     def state(self) -> dict[str, Any]:
@@ -212,13 +212,9 @@ class RealSuite(PriorSuite):
             out[role] = PriorBinding(model, self.loras.get(role), cond)
         return out
 
-    def after_step(self, ok: bool) -> None:
+    def after_step(self, ok: Tensor | bool) -> None:
         for loras in self.loras.values():
-            if ok:
-                loras.step([self.object_id])  # skips an adapter whose own gradients are not finite
-            else:
-                for p in loras.parameters(self.object_id):
-                    p.grad = None
+            loras.step([self.object_id], ok)  # also skips an adapter whose own gradients are not finite
 
     def state(self) -> dict[str, Any]:
         return {role: {"adapter": loras.state_dict(self.object_id),

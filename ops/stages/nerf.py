@@ -21,7 +21,13 @@ from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.guidance_presets import NERF_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
-from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
+from morpheus_core.render.volume import (
+    OccupancyGrid,
+    OccupancyGridConfig,
+    SampleBudget,
+    VolumeRenderConfig,
+    render_volume,
+)
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
@@ -88,28 +94,33 @@ class NerfTask(GuidedTask):
         ], device)
         # Every render setting of the config reaches both renders; only what a render is for differs.
         self.eval_render = replace(cfg.render, stratified=False, with_normals=False)
+        padded = cfg.render.sample_buffer == "padded" or (cfg.render.sample_buffer == "auto" and device.type == "cuda")
+        self.budget = SampleBudget() if padded else None
+        self.samples_dropped = 0
 
-    def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool) -> Any:
+    def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool, key: str) -> Any:
         render_cfg = replace(self.cfg.render, stratified=True, with_normals=with_normals)
         occ = self.occupancy if self.cfg.use_occupancy else None
         return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
-                             generator)
+                             generator, self.budget, key)
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         cfg = self.cfg
         self.field.update_step(step)
-        if cfg.use_occupancy:
-            self.occupancy.maybe_refresh(self.field, step, generator)
-        ref = self._render(self.target.camera, generator, False)
+        if cfg.use_occupancy and self.occupancy.maybe_refresh(self.field, step, generator) and self.budget:
+            self.samples_dropped += sum(self.budget.adapt().values())  # the grid changed: resize the buffers
+        ref = self._render(self.target.camera, generator, False, "reference")
         cams = novel_cameras(cfg.n_views, generator, self.device)
         smooth = cfg.normal_smooth_weight > 0
-        novel = self._render(cams, generator, smooth)
+        novel = self._render(cams, generator, smooth, "novel")
         m = mask_bce(ref.opacity_chw(), self.target.mask)
         loss, terms = cfg.mask_weight * m, {"mask_bce": m.detach()}
         if smooth:
             s = normal_smoothness(novel.normal, novel.opacity)
             loss = loss + cfg.normal_smooth_weight * s
             terms["normal_smooth"] = s.detach()
+        if self.budget is not None:  # samples past a full buffer, since the stage began
+            terms["samples_dropped"] = self.budget.dropped() + self.samples_dropped  # type: ignore[operator]
         return RenderedStep(cams, novel.rgb_chw(), ref.rgb_chw(), loss, terms)
 
     def last_phase(self, step: int) -> bool:
