@@ -135,6 +135,35 @@ def _profile(task: Any, dev: torch.device, gen: torch.Generator, rows: int = 25)
     return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=70)
 
 
+def host_syncs(task: Any, dev: torch.device, gen: torch.Generator, steps: int = 3) -> tuple[float, str]:
+    """Host syncs per step (CUDA's sync debug mode over ``steps`` steps, the loop reading its guards at
+    the last one only), and the repository lines that caused them, most frequent first."""
+    import traceback as tb
+    import warnings
+
+    if dev.type != "cuda":
+        return 0.0, ""
+    sites: dict[str, int] = {}
+    root = str(ROOT)
+
+    def record(*_args: Any, **_kwargs: Any) -> None:
+        frames = [f for f in tb.extract_stack()[:-1]
+                  if f.filename.startswith(root) and not any(d in f.filename for d in ("/benchmarks/", "/.venv/"))]
+        where = f"{Path(frames[-1].filename).relative_to(ROOT)}:{frames[-1].lineno}" if frames else "(outside)"
+        sites[where] = sites.get(where, 0) + 1
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = record  # type: ignore[assignment]
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            run_loop(task, LoopConfig(steps, log_every=10**9), gen, "syncs")
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    table = "\n".join(f"    {n / steps:6.1f}  {k}" for k, n in sorted(sites.items(), key=lambda kv: -kv[1]))
+    return round(sum(sites.values()) / steps, 1), f"host syncs per step ({steps} steps):\n{table}\n"
+
+
 def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, profile: bool) -> tuple[dict, str]:
     """One (stage, batch) row; writes object 0's output when it is the first batch (the next stage's input)."""
     dev = rig.dev
@@ -148,7 +177,10 @@ def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, pro
         gen = torch.Generator().manual_seed(0)
         row = {"stage": stage, "batch": batch, "setup_s_per_object": round(setup_s, 2)}
         row |= _timed_loop(task, steps, warmup, dev, gen)
-        table = _profile(task, dev, gen) if profile else ""
+        table = ""
+        if profile:
+            row["host_syncs_per_step"], syncs = host_syncs(task, dev, gen)
+            table = _profile(task, dev, gen) + "\n" + syncs
         if stage != "texture" and (rig.nerf_dir if stage == "nerf" else rig.dmtet_dir) is None:
             jobs[0].finish(LoopResult([], GuardCounters(), None, 0, 0.0))
             out = rig.work / f"{stage}_0"
