@@ -136,32 +136,40 @@ def _profile(task: Any, dev: torch.device, gen: torch.Generator, rows: int = 25)
 
 
 def host_syncs(task: Any, dev: torch.device, gen: torch.Generator, steps: int = 3) -> tuple[float, str]:
-    """Host syncs per step (CUDA's sync debug mode over ``steps`` steps, the loop reading its guards at
-    the last one only), and the repository lines that caused them, most frequent first."""
+    """Host syncs per steady-state step under CUDA's sync debug mode, and the repository lines that
+    cause them: a run of 1 + ``steps`` steps minus a run of 1, so the loop's start (state copy for
+    restores) and its one guard read at the end are left out."""
     import traceback as tb
     import warnings
 
     if dev.type != "cuda":
         return 0.0, ""
-    sites: dict[str, int] = {}
     root = str(ROOT)
 
-    def record(*_args: Any, **_kwargs: Any) -> None:
-        frames = [f for f in tb.extract_stack()[:-1]
-                  if f.filename.startswith(root) and not any(d in f.filename for d in ("/benchmarks/", "/.venv/"))]
-        where = f"{Path(frames[-1].filename).relative_to(ROOT)}:{frames[-1].lineno}" if frames else "(outside)"
-        sites[where] = sites.get(where, 0) + 1
+    def count(n: int) -> dict[str, int]:
+        sites: dict[str, int] = {}
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("always")
-        warnings.showwarning = record  # type: ignore[assignment]
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            run_loop(task, LoopConfig(steps, log_every=10**9), gen, "syncs")
-        finally:
-            torch.cuda.set_sync_debug_mode("default")
-    table = "\n".join(f"    {n / steps:6.1f}  {k}" for k, n in sorted(sites.items(), key=lambda kv: -kv[1]))
-    return round(sum(sites.values()) / steps, 1), f"host syncs per step ({steps} steps):\n{table}\n"
+        def record(*_args: Any, **_kwargs: Any) -> None:
+            frames = [f for f in tb.extract_stack()[:-1]
+                      if f.filename.startswith(root) and not any(d in f.filename for d in ("/benchmarks/", "/.venv/"))]
+            where = f"{Path(frames[-1].filename).relative_to(ROOT)}:{frames[-1].lineno}" if frames else "(outside)"
+            sites[where] = sites.get(where, 0) + 1
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = record  # type: ignore[assignment]
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                run_loop(task, LoopConfig(n, log_every=10**9), gen, "syncs")
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        return sites
+
+    one, more = count(1), count(1 + steps)
+    per_step = {k: (more.get(k, 0) - one.get(k, 0)) / steps for k in set(one) | set(more)}
+    per_step = {k: v for k, v in per_step.items() if v > 0}
+    table = "\n".join(f"    {v:6.1f}  {k}" for k, v in sorted(per_step.items(), key=lambda kv: -kv[1]))
+    return round(sum(per_step.values()), 1), f"host syncs per step (steady state, {steps} steps):\n{table}\n"
 
 
 def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, profile: bool) -> tuple[dict, str]:

@@ -250,7 +250,7 @@ def test_padded_sample_buffers_render_and_backpropagate_like_the_exact_gather(se
     grid = _grid_for(field, device, seed)
     exact, exact_grads = _render_and_grads(field, cams, grid, None, seed)
     budget = SampleBudget(headroom=1.0, quantum=64)
-    _render_and_grads(field, cams, grid, budget, seed)  # the first render: buffers hold every sample
+    _render_and_grads(field, cams, grid, budget, seed)  # the first render sizes the buffers from its counts
     assert set(budget.adapt()) == {"render", "render/normals"}
     assert budget.capacity["render"] < 2 * 16 * 16 * 40  # sized from what the grid keeps, not the box
     padded, padded_grads = _render_and_grads(field, cams, grid, budget, seed)

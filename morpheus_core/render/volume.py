@@ -172,9 +172,8 @@ class SampleBudget:
     the ones dropped are the deepest, behind what the ray has most likely hit already; how many
     were dropped is counted on the device. ``adapt`` (one host read, every few steps: the NeRF
     stage calls it at each occupancy refresh) resizes each buffer to ``headroom`` × the most
-    samples it was asked for since, rounded up to ``quantum``, so shapes change rarely. Until the
-    first ``adapt`` a buffer holds every sample of its rays: nothing is ever dropped before the
-    grid has been measured.
+    samples it was asked for since, rounded up to ``quantum``, so shapes change rarely; a buffer's
+    first gather sizes it the same way from its own count.
     """
 
     def __init__(self, headroom: float = 1.25, quantum: int = 1 << 16) -> None:
@@ -187,13 +186,16 @@ class SampleBudget:
 
     def gather(self, name: str, keep: Tensor) -> tuple[Tensor, Tensor]:
         """Flat indices (into ``keep``, (R, S) ray-major) of up to ``capacity`` kept samples, padded
-        with ``keep.numel()`` (a slot whose result is discarded), and the kept count (device)."""
+        with ``keep.numel()`` (a slot whose result is discarded), and the kept count (device). A
+        buffer's first gather sizes it from its count (one host read, once)."""
         r, s = keep.shape
         n = r * s
-        cap = min(self.capacity.get(name, n), n)
         order = keep.t().reshape(-1)
         pos = torch.cumsum(order, 0) - 1
         count = pos[-1] + 1
+        if name not in self.capacity:  # a buffer of every sample would be 4× the memory, and slow
+            self.capacity[name] = self._size(int(count))
+        cap = min(self.capacity[name], n)
         slot = torch.where(order & (pos < cap), pos, cap)
         flat = torch.arange(n, device=keep.device).reshape(r, s).t().reshape(-1)
         index = torch.full((cap + 1,), n, dtype=torch.long, device=keep.device).scatter_(0, slot, flat)[:cap]
@@ -201,6 +203,9 @@ class SampleBudget:
         self._peak[name] = torch.maximum(self._peak.get(name, zero), count)
         self._dropped[name] = self._dropped.get(name, zero) + (count - cap).clamp_min(0)
         return index, count
+
+    def _size(self, peak: int) -> int:
+        return max(self.quantum, math.ceil(peak * self.headroom / self.quantum) * self.quantum)
 
     def dropped(self) -> Tensor | None:
         """Samples dropped for want of room, summed over the buffers since the last ``adapt`` (device)."""
@@ -214,7 +219,7 @@ class SampleBudget:
         names = list(self._peak)
         values = torch.stack([self._peak[k] for k in names] + [self._dropped[k] for k in names]).tolist()
         for name, peak in zip(names, values[:len(names)], strict=True):
-            self.capacity[name] = max(self.quantum, math.ceil(peak * self.headroom / self.quantum) * self.quantum)
+            self.capacity[name] = self._size(peak)
         dropped = dict(zip(names, (int(v) for v in values[len(names):]), strict=True))
         self._peak.clear()
         self._dropped.clear()
@@ -224,11 +229,14 @@ class SampleBudget:
 def _query_padded(
     field: RadianceField, points: Tensor, index: Tensor, with_normals: bool, chunk: int
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """``_query`` on the samples ``index`` names (``SampleBudget.gather``): padding slots evaluate a
-    dummy point whose results land in a slot that is cut off."""
+    """``_query`` on the samples ``index`` names (``SampleBudget.gather``). Padding slots evaluate
+    some real point (slot i: point i) and their results land in a slot that is cut off: padding on
+    one shared point would send every padding gradient to the same hash-table cells, and those
+    contended atomics made the backward 3.5× slower (H200)."""
     n = points.shape[0]
-    padded = torch.cat((points, points.new_zeros(1, 3)))
-    samples: list[FieldSample] = [field.query(padded[i], with_normals) for i in index.split(chunk)]
+    spread = torch.arange(index.shape[0], device=index.device) % n
+    source = torch.where(index < n, index, spread)
+    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in source.split(chunk)]
 
     def place(values: list[Tensor], width: int | None) -> Tensor:
         shape = (n + 1,) if width is None else (n + 1, width)
