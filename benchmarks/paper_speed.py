@@ -246,6 +246,10 @@ def to_markdown(res: dict) -> str:
     for p in res["projections"]:
         lines.append(f"| {p['batch']} | {p['nerf_min']} | {p['dmtet_min']} | {p['texture_min']} | "
                      f"**{p['min_per_object']}** | **{p['objects_per_gpu_hour']}** | {p['peak_gib']} |")
+    syncs = [f"{r['stage']} {r['host_syncs_per_step']}" for r in res["rows"] if "host_syncs_per_step" in r]
+    if syncs:
+        lines += ["", "Host syncs per steady-state step at batch 1 (CUDA sync debug mode; sites in the profile file): "
+                  + ", ".join(syncs) + "."]
     lines += ["", f"Paper (RTX 4090): {sum(PAPER_MIN.values()):.0f} min per object "
               f"({' + '.join(f'{v:.0f}' for v in PAPER_MIN.values())})."]
     return "\n".join(lines) + "\n"
