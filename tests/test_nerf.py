@@ -47,7 +47,7 @@ def test_progressive_levels_follow_the_step() -> None:
 
 
 def test_the_nerf_stage_on_padded_sample_buffers_logs_drops_and_matches_the_exact_gather(tmp_path) -> None:
-    """The CUDA default (``sample_buffer=padded``) forced on the CPU: the stage runs, its run log counts
+    """``sample_buffer=padded``: the stage runs, its run log counts
     the samples a full buffer dropped, and with none dropped it learns what the exact gather learns."""
     from assets_store.runlog import read_runlog
     from assets_store.store import Store

@@ -94,8 +94,7 @@ class NerfTask(GuidedTask):
         ], device)
         # Every render setting of the config reaches both renders; only what a render is for differs.
         self.eval_render = replace(cfg.render, stratified=False, with_normals=False)
-        padded = cfg.render.sample_buffer == "padded" or (cfg.render.sample_buffer == "auto" and device.type == "cuda")
-        self.budget = SampleBudget() if padded else None
+        self.budget = SampleBudget() if cfg.render.sample_buffer == "padded" else None
         self.samples_dropped = 0
 
     def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool, key: str) -> Any:
