@@ -20,6 +20,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
 import dagster as dg
 
@@ -69,6 +70,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     keys = _select(resource, names)
     instance = _instance()
     instance.add_dynamic_partitions(PHOTOS, keys)
+    gpu_pool(None, force=False, out=sys.stderr)
     job = defs.resolve_job_def(JOB)
     rows, failed = [], 0
     for i, key in enumerate(keys, 1):
@@ -98,19 +100,31 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     return 1 if failed else 0
 
 
-def gpu_pool(limit: int | None, force: bool) -> int:
+def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
     """Set the ``gpu`` pool's limit to the GPUs runs may lease here (``ops.engine.gpu_lease``; at least 1, so
     a CPU host still runs its GPU stages on the CPU one at a time). A limit set before is kept
-    unless ``force``."""
+    unless ``force``.
+
+    ``add-photos`` and ``materialize`` call it too: a pool left on dagster.yaml's ``default_limit``
+    is created by the first GPU step that claims a slot, and on Postgres two runs doing that at once
+    fail one of them (duplicate key in ``concurrency_limits``; Dagster issue 33552). A limit set
+    here is never re-initialised by the steps."""
     storage = _instance().event_log_storage
     found = gpu_count()
     wanted = limit if limit is not None else max(1, found)
     if GPU_POOL in storage.get_concurrency_keys() and not force:
         current = storage.get_concurrency_info(GPU_POOL).slot_count
-        print(f"pool {GPU_POOL!r} keeps its limit {current} ({found} GPU(s) found; --force sets {wanted})")
+        print(f"pool {GPU_POOL!r} keeps its limit {current} ({found} GPU(s) found; --force sets {wanted})", file=out)
         return 0
-    storage.set_concurrency_slots(GPU_POOL, wanted)
-    print(f"pool {GPU_POOL!r} limit {wanted} ({found} GPU(s) found via {GPUS_ENV} / CUDA_VISIBLE_DEVICES / torch)")
+    try:
+        storage.set_concurrency_slots(GPU_POOL, wanted)
+    except Exception:  # another process set it at the same moment: keep theirs
+        if GPU_POOL not in storage.get_concurrency_keys():
+            raise
+        print(f"pool {GPU_POOL!r} was just set by another process", file=out)
+        return 0
+    print(f"pool {GPU_POOL!r} limit {wanted} ({found} GPU(s) found via {GPUS_ENV} / CUDA_VISIBLE_DEVICES / torch)",
+          file=out)
     return 0
 
 
@@ -145,6 +159,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "add-photos":
         keys = _select(resource, args.names)
         _instance().add_dynamic_partitions(PHOTOS, keys)
+        gpu_pool(None, force=False, out=sys.stderr)  # before any run claims a slot (see gpu_pool)
         print(",".join(keys))
         return 0
     if args.command == "migrate-history":

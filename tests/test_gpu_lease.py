@@ -136,6 +136,37 @@ def test_gpu_pool_limit_is_the_gpu_count(tmp_path: Path, monkeypatch: pytest.Mon
     assert main(["gpu-pool", "--force"]) == 0 and limit() == 1  # a CPU host: one at a time
 
 
+def test_registering_photos_sets_the_gpu_pool_before_any_run_claims_it(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A pool left to dagster.yaml's default is created by the first step that claims it, which races
+    between concurrent runs on Postgres (Dagster issue 33552): ``add-photos`` sets it first, keeping
+    a limit set before, and leaves stdout to the keys."""
+    import dagster as dg
+
+    from orchestration.cli import main
+
+    monkeypatch.setenv("DAGSTER_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("MORPHEUS_PHOTO_DIR", str(ROOT / "examples" / "photos"))
+    monkeypatch.setenv("MORPHEUS_STORE", str(tmp_path / "store"))
+    monkeypatch.setenv("MORPHEUS_GPUS", "0,1")
+
+    def keys_and_limit() -> tuple[set[str], int | None]:
+        with dg.DagsterInstance.get() as instance:
+            storage = instance.event_log_storage
+            keys = set(storage.get_concurrency_keys())
+            return keys, storage.get_concurrency_info("gpu").slot_count if "gpu" in keys else None
+
+    (tmp_path / "home").mkdir()
+    assert keys_and_limit() == (set(), None)
+    assert main(["add-photos", "mug.jpg"]) == 0
+    out = capsys.readouterr()
+    assert out.out.strip() == "mug.jpg" and "limit 2" in out.err
+    assert keys_and_limit() == ({"gpu"}, 2)
+    monkeypatch.setenv("MORPHEUS_GPUS", "none")
+    assert main(["add-photos", "box.jpg"]) == 0 and keys_and_limit() == ({"gpu"}, 2)
+
+
 def test_a_live_writer_on_another_host_keeps_its_staging_folder(tmp_path: Path,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     store = Store(tmp_path / "store")
