@@ -40,18 +40,6 @@ def pick_device(name: str) -> torch.device:
     return dev
 
 
-def draws_on(generator: torch.Generator | None, device: torch.device) -> torch.Generator | None:
-    """A generator on ``device`` for a large random draw, seeded by one 64-bit draw from ``generator``
-    (on the host, no sync): the NeRF stage's 4M jitter values per render are then drawn where they are
-    used, not on the CPU and copied (a pageable copy also waits for the GPU to drain). The draw stays
-    a function of ``generator``'s state, so a resumed run repeats it; on ``generator``'s own device
-    (or without one) it is ``generator`` itself."""
-    if generator is None or generator.device.type == torch.device(device).type:
-        return generator
-    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-    return torch.Generator(device=device).manual_seed(seed)
-
-
 def to_device(t: Tensor, device: torch.device | str | None, dtype: torch.dtype | None = None) -> Tensor:
     """``t`` on ``device``: a CPU tensor headed for CUDA goes through pinned memory with a
     non-blocking copy, because a copy from pageable memory makes the host wait until the GPU has

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.devices import draws_on
+from morpheus_core.devices import to_device
 from morpheus_core.geometry.nerf import FieldSample, RadianceField
 from morpheus_core.render.output import RenderOutput
 
@@ -118,7 +118,7 @@ class OccupancyGrid(nn.Module):
         device = self.density.device
         axis = torch.arange(n, device=device, dtype=torch.float32)
         cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-        jitter = torch.rand(cells.shape, generator=draws_on(generator, device), dtype=torch.float32, device=device)
+        jitter = to_device(torch.rand(cells.shape, generator=generator, dtype=torch.float32), device)
         points = ((cells + jitter) / n * 2 - 1) * self.bbox_radius
         fresh = torch.cat([field.density(c).float() for c in points.split(1 << 18)]).reshape(n, n, n)
         fresh = torch.nan_to_num(fresh, nan=0.0, posinf=torch.finfo(fresh.dtype).max)
@@ -295,7 +295,10 @@ def render_volume(
     s = config.n_samples
     u = torch.arange(s, dtype=o.dtype, device=o.device)
     if config.stratified:
-        u = u + torch.rand((o.shape[0], s), generator=draws_on(generator, o.device), dtype=o.dtype, device=o.device)
+        # Drawn by the CPU generator as always: drawing it on the GPU from a seed of that generator
+        # (no 16 MB copy) shifted the results systematically — reference PSNR up, novel-view PSNR
+        # down, on the GPU (24 pairs) and emulated on the CPU (8 pairs): benchmarks/results/quality_nosync_h200.md.
+        u = u + to_device(torch.rand((o.shape[0], s), generator=generator, dtype=o.dtype), o.device)
     else:
         u = (u + 0.5).expand(o.shape[0], s)
     step = ((far - near) / s).unsqueeze(-1)  # δ per ray: the bin width
