@@ -147,21 +147,35 @@ def _query(
     field: RadianceField, points: Tensor, keep: Tensor, with_normals: bool, chunk: int, density_only: bool = False
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """Evaluate the field only at ``keep`` points (in chunks); zeros elsewhere."""
-    n = points.shape[0]
-    density = points.new_zeros(n)
-    albedo = points.new_zeros(n, 3)
-    normal = points.new_zeros(n, 3) if with_normals else None
     index = keep.nonzero().squeeze(-1)
     if index.numel() == 0:
-        return density, albedo, normal
+        n = points.shape[0]
+        return points.new_zeros(n), points.new_zeros(n, 3), points.new_zeros(n, 3) if with_normals else None
+    return _query_at(field, points, index, with_normals, chunk, density_only)
+
+
+def _query_at(
+    field: RadianceField, points: Tensor, index: Tensor, with_normals: bool, chunk: int, density_only: bool = False,
+    padded: bool = False,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The field at the points ``index`` names, zeros elsewhere. ``padded``: entries equal to
+    ``len(points)`` are padding slots (``SampleBudget.gather``); slot i evaluates point i and its
+    result lands in a slot that is cut off. Padding on one shared point would send every padding
+    gradient to the same hash-table cells, and those contended atomics made the backward 3.5×
+    slower (H200)."""
+    n = points.shape[0]
+    source = torch.where(index < n, index, torch.arange(index.shape[0], device=index.device) % n) if padded else index
+
+    def place(values: list[Tensor], width: int | None) -> Tensor:
+        shape = (n + 1,) if width is None else (n + 1, width)
+        return points.new_zeros(shape).index_put((index,), torch.cat(values).to(points.dtype))[:n]
+
     if density_only:
-        values = torch.cat([field.density(points[i]).to(points.dtype) for i in index.split(chunk)])
-        return density.index_put((index,), values), albedo, normal
-    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in index.split(chunk)]
-    density = density.index_put((index,), torch.cat([s.density.to(points.dtype) for s in samples]))
-    albedo = albedo.index_put((index,), torch.cat([s.albedo.to(points.dtype) for s in samples]))
-    if normal is not None:
-        normal = normal.index_put((index,), torch.cat([s.normal.to(points.dtype) for s in samples]))  # type: ignore[union-attr]
+        return place([field.density(points[i]) for i in source.split(chunk)], None), points.new_zeros(n, 3), None
+    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in source.split(chunk)]
+    density = place([x.density for x in samples], None)
+    albedo = place([x.albedo for x in samples], 3)
+    normal = place([x.normal for x in samples], 3) if with_normals else None  # type: ignore[misc]
     return density, albedo, normal
 
 
@@ -228,28 +242,6 @@ class SampleBudget:
         return dropped
 
 
-def _query_padded(
-    field: RadianceField, points: Tensor, index: Tensor, with_normals: bool, chunk: int
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """``_query`` on the samples ``index`` names (``SampleBudget.gather``). Padding slots evaluate
-    some real point (slot i: point i) and their results land in a slot that is cut off: padding on
-    one shared point would send every padding gradient to the same hash-table cells, and those
-    contended atomics made the backward 3.5× slower (H200)."""
-    n = points.shape[0]
-    spread = torch.arange(index.shape[0], device=index.device) % n
-    source = torch.where(index < n, index, spread)
-    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in source.split(chunk)]
-
-    def place(values: list[Tensor], width: int | None) -> Tensor:
-        shape = (n + 1,) if width is None else (n + 1, width)
-        return points.new_zeros(shape).index_put((index,), torch.cat(values).to(points.dtype))[:n]
-
-    density = place([x.density for x in samples], None)
-    albedo = place([x.albedo for x in samples], 3)
-    normal = place([x.normal for x in samples], 3) if with_normals else None  # type: ignore[misc]
-    return density, albedo, normal
-
-
 @torch.no_grad()
 def _visible(field: RadianceField, points: Tensor, keep: Tensor, step: Tensor, config: VolumeRenderConfig) -> Tensor:
     """``keep`` (R, S) without the samples whose transmittance is already below the threshold."""
@@ -286,7 +278,7 @@ def render_volume(
         if budget is None:
             return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
         index, _ = budget.gather(key, keep.reshape(-1, s))
-        return _query_padded(field, flat, index, normals, config.chunk_points)
+        return _query_at(field, flat, index, normals, config.chunk_points, padded=True)
 
     origins, dirs = cameras.rays(height, width)
     batch = len(cameras)

@@ -106,7 +106,8 @@ class NerfTask(GuidedTask):
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         cfg = self.cfg
         self.field.update_step(step)
-        if cfg.use_occupancy and self.occupancy.maybe_refresh(self.field, step, generator) and self.budget:
+        if cfg.use_occupancy and self.occupancy.maybe_refresh(self.field, step, generator) \
+                and self.budget is not None:
             self.samples_dropped += sum(self.budget.adapt().values())  # the grid changed: resize the buffers
         ref = self._render(self.target.camera, generator, False, "reference")
         cams = novel_cameras(cfg.n_views, generator, self.device)
