@@ -38,7 +38,7 @@ from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from morpheus_core.geometry.hashgrid import BACKEND_ENV
-from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.priors.runtime import GraphedCall, PriorRuntime
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
@@ -94,17 +94,18 @@ class Rig:
         cfg, ref = self.cfg, self.refs[i % len(self.refs)]
         key, out = f"obj{i}", self.work / f"{stage}_{i}"
         out.mkdir(parents=True, exist_ok=True)
-        if stage == "nerf":
-            g = cfg.nerf.guidance
-            return start_nerf(ref, out, cfg.nerf, cfg.priors, key, str(self.dev), i,
-                              self.suite(key, ref, g.roles, g.vsd_roles))
-        if stage == "dmtet":
-            g = cfg.dmtet.guidance
-            return start_dmtet(ref, out, cfg.dmtet, cfg.priors, key, self.nerf_dir, None, None, str(self.dev), i,
-                               self.suite(key, ref, g.roles, g.vsd_roles))
-        g = cfg.texture.guidance
-        return start_texture(ref, self.dmtet_dir, out, cfg.texture, cfg.priors, key, str(self.dev), i,
-                             self.suite(key, ref, g.roles, g.vsd_roles))
+        g = getattr(cfg, stage).guidance
+        suite = self.suite(key, ref, g.roles, g.vsd_roles)
+        try:
+            if stage == "nerf":
+                return start_nerf(ref, out, cfg.nerf, cfg.priors, key, str(self.dev), i, suite)
+            if stage == "dmtet":
+                return start_dmtet(ref, out, cfg.dmtet, cfg.priors, key, self.nerf_dir, None, None, str(self.dev),
+                                   i, suite)
+            return start_texture(ref, self.dmtet_dir, out, cfg.texture, cfg.priors, key, str(self.dev), i, suite)
+        except BaseException:  # a LoRA left on the shared UNet would block the next row's object
+            suite.close()
+            raise
 
 
 def _timed_loop(task: Any, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
@@ -114,14 +115,19 @@ def _timed_loop(task: Any, steps: int, warmup: int, dev: torch.device, gen: torc
     warm_s = time.perf_counter() - t0
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
+    captures = GraphedCall.captures
     start = time.perf_counter()
     res = run_loop(task, LoopConfig(steps, log_every=10**9), gen, "timed")
     _sync(dev)
     ms = (time.perf_counter() - start) * 1000 / steps  # the mean: it includes the occupancy refreshes
     if res.guards.skipped:
         raise FloatingPointError(f"{res.guards.skipped} timed steps were skipped: {res.guards.as_dict()}")
-    peak = round(torch.cuda.max_memory_allocated(dev) / 2**30, 2) if dev.type == "cuda" else None
-    return {"ms_per_step": round(ms, 2), "peak_gib": peak, "warmup_s": round(warm_s, 1)}
+    # Reserved, not allocated: a CUDA graph's activations are free blocks of its private pool between
+    # replays, which max_memory_allocated does not count.
+    peak = round(torch.cuda.max_memory_reserved(dev) / 2**30, 2) if dev.type == "cuda" else None
+    # Non-zero: a graph cache is too small for the shapes a step uses, and every step captures again.
+    return {"ms_per_step": round(ms, 2), "peak_gib": peak, "warmup_s": round(warm_s, 1),
+            "graph_captures_timed": GraphedCall.captures - captures}
 
 
 def _profile(task: Any, dev: torch.device, gen: torch.Generator, rows: int = 25) -> str:
@@ -232,7 +238,10 @@ def to_markdown(res: dict) -> str:
              f"{sched['nerf']} + {sched['dmtet']} + {sched['texture']} steps. "
              f"Command: `{res['command']}`.", "",
              "Minutes per object = Σ stages (ms/step × steps / batch + set-up per object), extrapolated from the "
-             "steady-state steps (one run cannot hold the whole schedule in a 10-minute device call).", "",
+             "steady-state steps (one run cannot hold the whole schedule in a 10-minute device call). Peak memory: "
+             + ("the allocator's reserved peak during the timed steps (CUDA graphs keep their pools)."
+                if res.get("peak") == "reserved" else "max_memory_allocated during the timed steps (older runs: "
+                "this misses the activations CUDA graphs keep in their pools)."), "",
              "| stage | batch | ms/step | ms per object-step | peak GiB | set-up s/object | warm-up s |",
              "|---|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
@@ -246,6 +255,11 @@ def to_markdown(res: dict) -> str:
     for p in res["projections"]:
         lines.append(f"| {p['batch']} | {p['nerf_min']} | {p['dmtet_min']} | {p['texture_min']} | "
                      f"**{p['min_per_object']}** | **{p['objects_per_gpu_hour']}** | {p['peak_gib']} |")
+    recaptured = [f"{r['stage']} at batch {r['batch']} ({r['graph_captures_timed']})" for r in res["rows"]
+                  if r.get("graph_captures_timed")]
+    if recaptured:
+        lines += ["", "**CUDA graphs were captured during the timed steps** (their cache is too small for the "
+                  "shapes a step uses): " + ", ".join(recaptured) + "."]
     syncs = [f"{r['stage']} {r['host_syncs_per_step']}" for r in res["rows"] if "host_syncs_per_step" in r]
     if syncs:
         lines += ["", "Host syncs per steady-state step at batch 1 (CUDA sync debug mode; sites in the profile file): "
@@ -295,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def write() -> str:  # after every row: a call cut short by its time limit keeps what it measured
         res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
-               "mode": args.mode, "accel": accel, "compiled": dev.type == "cuda" and mode["compile"] == "1",
+               "mode": args.mode, "accel": accel, "peak": "reserved",
+               "compiled": dev.type == "cuda" and mode["compile"] == "1",
                "hashgrid": os.environ.get(BACKEND_ENV) or "auto",
                "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
                "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
@@ -307,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
             atomic_write_text(args.out / f"paper_profile_{args.mode}_{args.tag}.txt", "\n\n".join(profiles) + "\n")
         return to_markdown(res)
 
+    for needed in STAGES[:STAGES.index(args.stages[0])]:  # the first timed stage's inputs: short runs, not reported
+        measure_stage(rig, needed, 1, 2, 2, False)
     for stage in args.stages:
         for batch in sorted(args.batches):
             try:

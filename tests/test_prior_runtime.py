@@ -25,3 +25,16 @@ def test_runtime_defaults_and_validation() -> None:
 def test_place_freezes_and_casts() -> None:
     lin = PriorRuntime(dtype=torch.bfloat16).place(torch.nn.Linear(3, 2))
     assert lin.weight.dtype == torch.bfloat16 and not lin.weight.requires_grad and not lin.training
+
+
+def test_lru_cache_drops_the_least_recently_used_entry() -> None:
+    from morpheus_core.priors.runtime import LruCache
+
+    cache: LruCache[str, int] = LruCache(2)
+    cache.put("a", 1)
+    cache.put("b", 2)
+    assert cache.get("a") == 1  # "a" is now the most recent
+    cache.put("c", 3)
+    assert cache.get("b") is None and cache.get("a") == 1 and cache.get("c") == 3 and len(cache) == 2
+    with pytest.raises(ValueError, match="cache size"):
+        LruCache(0)

@@ -130,8 +130,7 @@ class Image2DPrior:
             with torch.no_grad():
                 eps = self._frozen(*args)
         else:
-            with lora.active(ids + ids if guided else ids), self.runtime.autocast():
-                eps = self._denoise(*args)
+            eps = lora.denoise(self._denoise, args, ids + ids if guided else ids)
         eps = eps.float()
         if guided:
             eps_u, eps_c = eps.chunk(2)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from morpheus_core.atomic_io import atomic_write
 from morpheus_core.device_skip import nonfinite, step_or_skip
-from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.priors.runtime import LruCache, PriorRuntime
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,8 @@ class ObjectLoras:
         self._names: dict[str, str] = {}
         self._optimizers: dict[str, torch.optim.Optimizer] = {}
         self._layers: list[nn.Module] = []
+        # Per set of rows (a step uses two: the CFG pairs and the plain rows); a batch's sets change.
+        self._graphs: LruCache[tuple, tuple[tuple[int, ...], Callable[..., Tensor]]] = LruCache(4)
 
     # -- adapters -------------------------------------------------------------------------------
 
@@ -104,10 +106,11 @@ class ObjectLoras:
         with warnings.catch_warnings():  # peft warns that a model holds several adapters: by design
             warnings.simplefilter("ignore", UserWarning)
             self.unet.add_adapter(config, adapter_name=adapter_name(object_id))
-        # Off by default: every plain forward is the frozen prior; rows opt in through active().
+        # Off by default: every plain forward is the frozen prior; rows opt in through denoise().
         self.unet.disable_adapters()
         self._names[object_id] = adapter_name(object_id)
         self._layers = [m for m in self.unet.modules() if isinstance(m, LoraLayer)]
+        self._graphs.clear()  # captured with the old layer set
         for oid in self._names:  # disable_adapters() froze every adapter; they all train
             for p in self.parameters(oid):
                 p.data = p.data.float()  # Adam state and updates in float32 under a half UNet
@@ -117,16 +120,19 @@ class ObjectLoras:
 
     def remove(self, object_id: str) -> None:
         name = self._require([object_id])[0]
-        with warnings.catch_warnings():  # "active adapter deleted": none is active outside active()
+        with warnings.catch_warnings():  # "active adapter deleted": none is active outside denoise()
             warnings.simplefilter("ignore", UserWarning)
             self.unet.delete_adapters(name)
         del self._names[object_id], self._optimizers[object_id]
         from peft.tuners.lora import LoraLayer
 
         self._layers = [m for m in self.unet.modules() if isinstance(m, LoraLayer) and m.lora_A]
+        self._graphs.clear()
 
     def parameters(self, object_id: str) -> list[nn.Parameter]:
-        name = self._require([object_id])[0]
+        return self._adapter_weights(self._require([object_id])[0])
+
+    def _adapter_weights(self, name: str) -> list[nn.Parameter]:
         return [w for layer in self._layers for w in (layer.lora_A[name].weight, layer.lora_B[name].weight)]
 
     def _require(self, object_ids: Sequence[str]) -> list[str]:
@@ -135,19 +141,51 @@ class ObjectLoras:
             raise KeyError(f"no LoRA adapter for objects {missing}; call add(object_id) first")
         return [self._names[o] for o in object_ids]
 
-    @contextmanager
-    def active(self, object_ids: Sequence[str]) -> Iterator[None]:
-        """Within this block, every forward of the UNet adds row i's object adapter to row i."""
-        names = self._require(object_ids)
+    def _index(self, names: Sequence[str]) -> Tensor:
         unique = list(dict.fromkeys(names))
-        device = self.host.runtime.torch_device
-        index = torch.tensor([unique.index(n) for n in names], device=device)
-        handles = [layer.register_forward_hook(_RowLora(unique, index)) for layer in self._layers]
+        return torch.tensor([unique.index(n) for n in names], device=self.host.runtime.torch_device)
+
+    @contextmanager
+    def _rows(self, names: Sequence[str], index: Tensor) -> Iterator[None]:
+        """Within this block, every forward of the UNet adds row i's object adapter (``index[i]`` into
+        the unique ``names``) to row i."""
+        hook = _RowLora(list(dict.fromkeys(names)), index)
+        handles = [layer.register_forward_hook(hook) for layer in self._layers]
         try:
             yield
         finally:
             for h in handles:
                 h.remove()
+
+    def denoise(self, fn: Callable[..., Tensor], args: tuple[Tensor, ...], object_ids: Sequence[str]) -> Tensor:
+        """``fn(*args)`` (the host's UNet call) with row i's object adapter added to row i.
+
+        On a ``cudagraph`` runtime the call, and with gradients its backward into the adapters, is
+        replayed from CUDA graphs (``PriorRuntime.accelerate``) per set of rows. Eager, this call is
+        launch-bound: ~4,200 small copies a texture step around the 128 adapter hooks
+        (``benchmarks/results/paper_speed_h200.md``). A graph reads the adapters' weights where they
+        are, so Adam's in-place updates are seen; it is captured again when an adapter's storage
+        moves (``add``, or a state load that replaces it).
+        """
+        names = self._require(object_ids)
+        runtime = self.host.runtime
+        if runtime.accel != "cudagraph":
+            with self._rows(names, self._index(names)), runtime.autocast():
+                return fn(*args)
+        key = (fn, tuple(names))
+        params = [p for n in dict.fromkeys(names) for p in self._adapter_weights(n)]
+        storage = tuple(p.data_ptr() for p in params)
+        cached = self._graphs.get(key)
+        if cached is None or cached[0] != storage:
+            index = self._index(names)  # made once, outside any capture, and kept alive by the closure
+
+            def adapted(*inputs: Tensor) -> Tensor:
+                # No cast cache: it must not outlive a capture (and a replay does not run this code).
+                with self._rows(names, index), runtime.autocast(cache=False):
+                    return fn(*inputs)
+
+            cached = self._graphs.put(key, (storage, runtime.accelerate(adapted, params)))
+        return cached[1](*args)
 
     # -- Prior protocol (the VSD counterpart) ---------------------------------------------------
 

@@ -195,8 +195,7 @@ class Zero123Prior:
             with torch.no_grad():
                 eps = self._frozen(sample, t, context)
         else:
-            with lora.active(ids + ids if guided else ids), self.runtime.autocast():
-                eps = self._denoise(sample, t, context)
+            eps = lora.denoise(self._denoise, (sample, t, context), ids + ids if guided else ids)
         eps = eps.float()
         if guided:
             eps_u, eps_c = eps.chunk(2)

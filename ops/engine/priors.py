@@ -227,8 +227,10 @@ class RealSuite(PriorSuite):
             loras.load_optimizer_state_dict(self.object_id, state[role]["optimizer"])
 
     def close(self) -> None:
+        """Idempotent: a stage's failed start closes its suite, and so may the caller that made it."""
         for loras in self.loras.values():
-            loras.remove(self.object_id)
+            if self.object_id in loras.object_ids:
+                loras.remove(self.object_id)
         for model in self.models.values():
             model.forget(self.object_id)
 
