@@ -190,7 +190,7 @@ def test_graphed_call_gradients_match_eager_and_see_in_place_updates() -> None:
         with torch.no_grad():  # an optimiser's in-place step: the next replay must read it
             w -= 0.1 * w.grad
         w.grad = None
-        del got, want  # a live autograd graph through ``w`` would make the next capture fail (GraphedCall)
+        del got, want  # an eager graph through ``w`` alive at a capture made it fail (GraphedCall)
         with torch.no_grad():
             assert torch.allclose(graphed(x), fn(x), atol=1e-5)  # the forward-only graph
     assert len(graphed.graphs) == 2

@@ -145,12 +145,14 @@ class GraphedCall:
     static buffers, outputs and gradients out of them, so callers see ordinary tensors; a backward
     whose saved activations a later forward of the same signature has overwritten raises instead
     of returning wrong gradients. Capture happens on first use of a signature, after two warm-up
-    runs on a side stream (CUDA graphs require it); each signature has its own memory pool, so
-    replays of different signatures never share activations.
+    runs on a side stream (CUDA graphs require it). Forward-only graphs share one memory pool (their
+    activations die within a replay); each graph with a backward has its own, so no other replay
+    can overwrite the activations it saved.
 
-    A capture with gradients fails while an earlier autograd graph through ``params`` is still alive
-    (its gradient accumulators belong to the default stream, which a capture may not wait on): the
-    optimising loop drops each step's graph before the next step, where new signatures appear.
+    On the H200 a capture with gradients failed (``cudaErrorStreamCaptureImplicit``) while an
+    *eager* autograd graph through ``params`` was still alive, whose gradient accumulators belong
+    to the default stream; a live graph of an earlier replay did not hurt. The optimising loop
+    drops each step's graph before the next step, where new signatures appear.
     """
 
     captures: ClassVar[int] = 0
@@ -195,7 +197,7 @@ class GraphedCall:
         forward = torch.cuda.CUDAGraph()
         with torch.set_grad_enabled(grad), torch.cuda.graph(forward, pool=pool):
             out = self.fn(*static)
-        cap = _Captured(static, out, forward)
+        cap = _Captured(static, out, forward, grads=(None,) * len(surface))
         if wrt and out.requires_grad:
             cap.grad_output = torch.empty_like(out)
             cap.backward = torch.cuda.CUDAGraph()
