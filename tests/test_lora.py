@@ -139,3 +139,18 @@ def test_adapter_checkpoint_round_trip(load_image2d, tmp_path: Path) -> None:
     assert torch.allclose(loras2.predict_noise(zt, t, cond, 1.0), loras.predict_noise(zt, t, cond, 1.0), atol=1e-6)
     with pytest.raises(ValueError, match="rank"):
         ObjectLoras(load_image2d(), LoraSettings(rank=8)).load("x", path)
+
+
+def test_real_suite_close_is_idempotent_and_frees_the_adapter(load_image2d) -> None:
+    """A stage whose start fails closes its suite, and so may the caller that made it."""
+    from ops.engine.priors import ModelCache, PriorsConfig, RealSuite
+
+    prior = load_image2d()
+    cfg = PriorsConfig()
+    suite = RealSuite(cfg, torch.device("cpu"), "obj", photo(3), ("2d",), ("2d",), {"2d": prior})
+    loras = ModelCache.loras(prior, cfg.lora)
+    assert loras.object_ids == ("obj",)
+    suite.close()
+    suite.close()
+    assert loras.object_ids == ()
+    RealSuite(cfg, torch.device("cpu"), "obj", photo(3), ("2d",), ("2d",), {"2d": prior}).close()  # re-addable
