@@ -37,8 +37,9 @@ import torch
 from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
+from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.geometry.hashgrid import BACKEND_ENV
-from morpheus_core.priors.runtime import GraphedCall, PriorRuntime
+from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
@@ -135,10 +136,14 @@ def _profile(task: Any, dev: torch.device, gen: torch.Generator, rows: int = 25)
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
     with profile(activities=acts) as prof:
+        start = time.perf_counter()
         run_loop(task, LoopConfig(3, log_every=10**9), gen, "profile")
         _sync(dev)
+        wall_ms = (time.perf_counter() - start) * 1000
     key = "self_cuda_time_total" if dev.type == "cuda" else "self_cpu_time_total"
-    return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=70)
+    # Wall time next to the CUDA total says whether the steps were bound by the GPU or by the host.
+    return (f"wall time of the 3 profiled steps: {wall_ms:.1f} ms (profiler overhead included)\n"
+            + prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=70))
 
 
 def host_syncs(task: Any, dev: torch.device, gen: torch.Generator, steps: int = 3) -> tuple[float, str]:
@@ -262,7 +267,8 @@ def to_markdown(res: dict) -> str:
                   "shapes a step uses): " + ", ".join(recaptured) + "."]
     syncs = [f"{r['stage']} {r['host_syncs_per_step']}" for r in res["rows"] if "host_syncs_per_step" in r]
     if syncs:
-        lines += ["", "Host syncs per steady-state step at batch 1 (CUDA sync debug mode; sites in the profile file): "
+        lines += ["", "Host syncs per steady-state step of the profiled rows (CUDA sync debug mode; sites in the "
+                  "profile file): "
                   + ", ".join(syncs) + "."]
     lines += ["", f"Paper (RTX 4090): {sum(PAPER_MIN.values()):.0f} min per object "
               f"({' + '.join(f'{v:.0f}' for v in PAPER_MIN.values())})."]
@@ -281,7 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=6)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the preset, as for `morpheus3d run` (A/B runs of one lever)")
-    p.add_argument("--profile", action="store_true", help="profile 3 steps of every batch-1 row")
+    p.add_argument("--profile", type=int, nargs="*", default=None, metavar="BATCH",
+                   help="profile 3 steps of the rows at these batch sizes (none given: batch 1)")
     p.add_argument("--store", type=Path, default=ROOT / "outputs" / "gpu_refs", help="where references are prepared")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     p.add_argument("--tag", default="cpu")
@@ -327,9 +334,10 @@ def main(argv: list[str] | None = None) -> int:
     for stage in args.stages:
         for batch in sorted(args.batches):
             try:
-                row, table = measure_stage(rig, stage, batch, args.steps, args.warmup, args.profile and batch == 1)
+                profiled = args.profile is not None and batch in (args.profile or [1])
+                row, table = measure_stage(rig, stage, batch, args.steps, args.warmup, profiled)
                 if table:
-                    profiles.append(f"## {stage}, batch 1, mode {args.mode}\n{table}")
+                    profiles.append(f"## {stage}, batch {batch}, mode {args.mode}\n{table}")
             except Exception as exc:  # e.g. out of memory at a large batch: record it, go on
                 traceback.print_exc()
                 row = {"stage": stage, "batch": batch, "error": repr(exc)[:300]}

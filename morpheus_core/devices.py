@@ -49,3 +49,13 @@ def to_device(t: Tensor, device: torch.device | str | None, dtype: torch.dtype |
     if t.device.type == "cpu" and target.type == "cuda":
         return (t if dtype is None else t.to(dtype)).pin_memory().to(target, non_blocking=True)
     return t.to(device=target, dtype=dtype)
+
+
+def filled_like(value: float | tuple[float, ...] | Tensor, like: Tensor) -> Tensor:
+    """``value`` (a number, a tuple of numbers or a tensor) as a tensor of ``like``'s dtype and
+    device. Numbers are filled in on the device: copying a host tensor there is a sync every call."""
+    if isinstance(value, Tensor):
+        return value.to(like)
+    if isinstance(value, int | float):
+        return like.new_full((), float(value))
+    return torch.stack([like.new_full((), float(v)) for v in value])

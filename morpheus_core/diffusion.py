@@ -45,6 +45,7 @@ class NoiseSchedule:
             math.sqrt(c.beta_start), math.sqrt(c.beta_end), c.num_train_timesteps, dtype=torch.float64
         ).pow(2)
         self.alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)
+        self._on_device: dict[torch.device, Tensor] = {}  # the table copied once per device, not per call
 
     @property
     def num_timesteps(self) -> int:
@@ -53,14 +54,22 @@ class NoiseSchedule:
     def _check(self, t: Tensor) -> Tensor:
         if t.dtype.is_floating_point or t.dtype == torch.bool:
             raise TypeError(f"timesteps must be integers, got {t.dtype}")
-        if t.numel() and (int(t.min()) < 0 or int(t.max()) >= self.num_timesteps):
+        if t.device.type != "cpu":  # asserted on the device: reading the values back would sync every call
+            torch._assert_async(((t >= 0) & (t < self.num_timesteps)).all(),
+                                f"timesteps must lie in [0, {self.num_timesteps})")
+        elif t.numel() and (int(t.min()) < 0 or int(t.max()) >= self.num_timesteps):
             raise ValueError(f"timesteps must lie in [0, {self.num_timesteps}), got {t.tolist()}")
         return t
+
+    def _table(self, device: torch.device) -> Tensor:
+        if device not in self._on_device:
+            self._on_device[device] = self.alphas_cumprod.to(device)
+        return self._on_device[device]
 
     def alpha_bar(self, t: Tensor, like: Tensor | None = None) -> Tensor:
         """ᾱ_t in float32 (float64 when ``like`` is float64), shaped to broadcast against ``like``."""
         dtype = work_dtype(like) if like is not None else torch.float32
-        ab = self.alphas_cumprod.to(t.device)[self._check(t).long()].to(dtype)
+        ab = self._table(t.device)[self._check(t).long()].to(dtype)
         if like is not None:
             ab = ab.reshape(-1, *([1] * (like.dim() - 1)))
         return ab

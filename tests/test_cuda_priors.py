@@ -8,12 +8,13 @@ from __future__ import annotations
 import pytest
 import torch
 
+from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
 from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage2_texture
 from morpheus_core.priors.image2d import Image2DPrior, Image2DSettings
 from morpheus_core.priors.lora import ObjectLoras
-from morpheus_core.priors.runtime import GraphedCall, PriorRuntime
+from morpheus_core.priors.runtime import PriorRuntime
 from morpheus_core.priors.zero123 import Zero123Prior
 from tests.helpers import RES_2D, photo
 
@@ -196,6 +197,29 @@ def test_graphed_call_gradients_match_eager_and_see_in_place_updates() -> None:
     assert len(graphed.graphs) == 2
 
 
+def test_graphed_call_of_several_outputs_takes_the_gradients_of_those_used() -> None:
+    """A tuple of outputs: each is replayed; an output the loss does not use adds no gradient."""
+    g = torch.Generator(device="cuda").manual_seed(5)
+    w = torch.randn(8, 8, device="cuda", generator=g).requires_grad_(True)
+
+    def fn(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        h = x @ w
+        return h.sin(), h.square()[:, :3], h.sum(-1)
+
+    graphed = GraphedCall(fn, [w], keep=1)
+    for used in ((0, 1, 2), (1,), (0, 2)):
+        x = torch.randn(6, 8, device="cuda", generator=g)
+        got = graphed(x)
+        sum(got[i].cos().sum() for i in used).backward()
+        want = fn(x)
+        want_gw = torch.autograd.grad(sum(want[i].cos().sum() for i in used), [w])[0]
+        assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(got, want, strict=True)), used
+        assert torch.allclose(w.grad, want_gw, atol=1e-4), used
+        w.grad = None
+        del got, want
+    assert len(graphed.graphs) == 1
+
+
 def test_graphed_call_refuses_a_backward_after_its_buffers_were_reused() -> None:
     w = torch.randn(4, 4, device="cuda").requires_grad_(True)
     graphed = GraphedCall(lambda x: (x @ w).sin(), [w])
@@ -234,3 +258,21 @@ def test_graphed_call_recaptures_an_evicted_signature_correctly() -> None:
         assert torch.allclose(w.grad, want, atol=1e-5) and len(graphed.graphs) == 1
         w.grad = None
         del y
+
+
+def test_released_graphs_give_their_memory_back_and_are_captured_again_when_called() -> None:
+    from morpheus_core.cuda_graphs import release_graphs
+
+    w = torch.randn(256, 256, device="cuda").requires_grad_(True)
+    graphed = GraphedCall(lambda x: torch.tanh(x @ w) @ w, [w])
+    x = torch.randn(4096, 256, device="cuda")
+    graphed(x).sum().backward()
+    torch.cuda.synchronize()
+    held = torch.cuda.memory_reserved()
+    release_graphs()
+    assert len(graphed.graphs) == 0 and torch.cuda.memory_reserved() < held
+    w.grad = None
+    before = GraphedCall.captures
+    graphed(x).sum().backward()
+    want = torch.autograd.grad((torch.tanh(x @ w) @ w).sum(), [w])[0]
+    assert GraphedCall.captures == before + 1 and torch.allclose(w.grad, want, rtol=1e-4, atol=1e-4)

@@ -131,6 +131,7 @@ class _StubTask:
 def test_a_batch_stops_each_object_on_its_own_log_and_ends_when_all_have() -> None:
     tasks = [_StubTask(), _StubTask()]
     batch = BatchTask(tasks, [torch.Generator(), torch.Generator()])  # type: ignore[list-item]
+    assert [t.shared_by for t in tasks] == [2, 2]  # the tasks know they share their steps
     flat, rising = [20.0] * 12, [20.0 + i for i in range(12)]
     history = [{"step": 5 * (i + 1), "0/ref_psnr": f, "1/ref_psnr": r}
                for i, (f, r) in enumerate(zip(flat, rising, strict=True))]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from morpheus_core.geometry.hashgrid import HashGridConfig
@@ -66,3 +67,17 @@ def test_the_nerf_stage_on_padded_sample_buffers_logs_drops_and_matches_the_exac
     if dropped[-1] == 0:
         for a, b in zip(logs["exact"], logs["padded"], strict=True):
             assert abs(a["ref_psnr"] - b["ref_psnr"]) < 1e-3
+
+
+def test_graphed_sample_buffers_on_the_cpu_fail_at_the_stage_start_and_name_the_fix(tmp_path) -> None:
+    from assets_store.store import Store
+    from ops.engine.pipeline import run_photo
+    from tests.pipeline_helpers import PHOTOS, tiny_config
+
+    if tiny_config().device != "cpu":
+        pytest.skip("a CPU-only failure")
+    store = Store(tmp_path)
+    out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("nerf.render.sample_buffer=graphed"), "tiny", "mug.jpg",
+                    until="nerf")
+    assert out.error is not None and "needs a CUDA device" in out.error and "auto, exact or padded" in out.error
+    assert store.read_manifest("mug.jpg", "nerf") is None  # nothing finished was written

@@ -265,7 +265,7 @@ def test_a_full_sample_buffer_drops_the_deepest_samples_and_counts_them() -> Non
     g = torch.Generator().manual_seed(secrets.randbits(31))
     keep = torch.rand(37, 11, generator=g) < 0.6
     count = int(keep.sum())
-    budget = SampleBudget(headroom=1.0, quantum=1)
+    budget = SampleBudget(headroom=1.0, quantum=1, hold=(1.0, 1.0))
     budget.capacity["k"] = cap = count - 5
     index, counted = budget.gather("k", keep)
     assert int(counted) == count and index.shape == (cap,)
@@ -288,5 +288,42 @@ def test_sample_budget_rounds_capacity_up_and_rejects_nonsense() -> None:
     assert budget.capacity["k"] == 500  # 330 · 1.25 = 412.5 → 500
     with pytest.raises(ValueError, match="headroom"):
         SampleBudget(headroom=0.5)
+    with pytest.raises(ValueError, match="hold"):
+        SampleBudget(hold=(0.5, 0.9))
     with pytest.raises(ValueError, match="sample_buffer"):
         VolumeRenderConfig(sample_buffer="fast")  # type: ignore[arg-type]
+
+
+def test_a_sample_buffer_keeps_its_size_while_the_peak_drifts_within_hold() -> None:
+    """Every new size is a new CUDA graph under ``graphed``: small drifts must not resize."""
+    budget = SampleBudget(headroom=1.25, quantum=10, hold=(0.75, 1.125))
+    rays = 100
+
+    def peak(count: int) -> int:
+        keep = torch.zeros(rays, 20, dtype=torch.bool)
+        keep.view(-1)[torch.randperm(keep.numel())[:count]] = True
+        budget.gather("k", keep)
+        budget.adapt()
+        return budget.capacity["k"]
+
+    first = peak(800)  # 800 · 1.25 = 1000: sized for a peak of 800
+    assert first == 1000
+    drift = [peak(c) for c in (620, 700, 880, 900)]  # within [0.75, 1.125] · 800 = [600, 900]
+    assert drift == [1000] * 4 and budget.resizes == 0
+    assert peak(950) == 1190 and budget.resizes == 1  # 950 · 1.25 = 1187.5 → 1190
+    assert peak(400) == 500 and budget.resizes == 2  # far below: shrink
+
+
+def test_auto_sample_buffers_are_graphed_alone_on_cuda_and_exact_otherwise_and_graphed_needs_cuda() -> None:
+    assert VolumeRenderConfig().sample_buffer_on(torch.device("cuda")) == "graphed"
+    assert VolumeRenderConfig().sample_buffer_on(torch.device("cuda"), alone=False) == "exact"  # in a batch
+    assert VolumeRenderConfig().sample_buffer_on(torch.device("cpu")) == "exact"
+    assert VolumeRenderConfig(sample_buffer="padded").sample_buffer_on(torch.device("cuda")) == "padded"
+    with pytest.raises(ValueError, match=r"graphed.*needs a CUDA device"):
+        VolumeRenderConfig(sample_buffer="graphed").sample_buffer_on(torch.device("cpu"))
+
+
+def test_graphed_sample_buffers_refuse_a_field_whose_parameters_they_cannot_see() -> None:
+    budget = SampleBudget(graphed=True)
+    with pytest.raises(TypeError, match=r"nn\.Module"):
+        budget.evaluator("render", ConstantSphere(1.0), False, 1024)

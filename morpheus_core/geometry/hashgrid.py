@@ -267,8 +267,9 @@ class HashGrid(nn.Module):
         """Zero the features of levels ≥ n (coarse-to-fine training); their table gets no gradient."""
         if not 1 <= n <= self.config.n_levels:
             raise ValueError(f"active levels must be in [1, {self.config.n_levels}], got {n}")
-        with torch.no_grad():
-            self.level_mask.copy_((torch.arange(self.config.n_levels) < n).to(self.level_mask.dtype))
+        with torch.no_grad():  # built on the mask's device: a host tensor's copy would sync every step
+            levels = torch.arange(self.config.n_levels, device=self.level_mask.device)
+            self.level_mask.copy_((levels < n).to(self.level_mask.dtype))
 
     def update_step(self, step: int) -> None:
         self.set_active_levels(self.config.levels_at(step))

@@ -29,8 +29,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from morpheus_core.atomic_io import atomic_write
+from morpheus_core.cuda_graphs import LruCache
 from morpheus_core.device_skip import nonfinite, step_or_skip
-from morpheus_core.priors.runtime import LruCache, PriorRuntime
+from morpheus_core.priors.runtime import PriorRuntime
 
 
 @dataclass(frozen=True)

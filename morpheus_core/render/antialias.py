@@ -97,7 +97,7 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
                 t = torch.where(cov_p, frac, 1.0 - frac).clamp(0.0, 1.0)
                 key = ((t * ((1 << _T_BITS) - 1)).round().long() << edge_bits) | edge[owner]
                 pair = p + (0 if major else batch * hw)
-                best.scatter_reduce_(0, pair[keep], key[keep], reduce="amax", include_self=True)
+                best.scatter_reduce_(0, pair, torch.where(keep, key, -1), reduce="amax", include_self=True)
         pair = (best >= 0).nonzero().squeeze(1)
         win_edge = best[pair] & ((1 << edge_bits) - 1)
         vertical = pair < batch * hw

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
+from morpheus_core.devices import filled_like
 from morpheus_core.geometry.mesh import Mesh, safe_normalize
 from morpheus_core.render.antialias import antialias
 from morpheus_core.render.output import RenderOutput
@@ -47,7 +48,7 @@ class MeshRenderConfig:
 
 
 def _background(background: float | Tensor, like: Tensor) -> Tensor:
-    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    bg = filled_like(background, like)
     if bg.dim() == 0:
         bg = bg.expand(3)
     try:

@@ -86,17 +86,18 @@ class EdgeTopology:
     nonmanifold: Tensor
 
 
-def edge_topology(faces: Tensor) -> EdgeTopology:
-    """Unique edges of ``faces`` (F, 3) int64 and their adjacent faces (sort of packed 1-D keys)."""
+def edge_topology(faces: Tensor, num_vertices: int | None = None) -> EdgeTopology:
+    """Unique edges of ``faces`` (F, 3) int64 and their adjacent faces (sort of packed 1-D keys).
+    ``num_vertices`` (more than the largest index) saves reading that index from the device."""
     num_faces = faces.shape[0]
     device = faces.device
     if num_faces == 0:
         empty = torch.zeros(0, 2, dtype=torch.int64, device=device)
         return EdgeTopology(empty, empty.clone(), torch.zeros(0, dtype=torch.bool, device=device))
     a = faces.reshape(-1)
-    b = faces[:, [1, 2, 0]].reshape(-1)
+    b = faces.roll(-1, 1).reshape(-1)  # corners 1, 2, 0; a list index would be a host copy (a sync)
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    stride = int(hi.max()) + 1
+    stride = int(hi.max()) + 1 if num_vertices is None else num_vertices
     keys = lo * stride + hi
     owner = torch.arange(num_faces, device=device).repeat_interleave(3)
     keys, order = torch.sort(keys, stable=True)
@@ -151,7 +152,7 @@ class Fragments:
 
     @cached_property
     def edges(self) -> EdgeTopology:
-        return edge_topology(self.faces)
+        return edge_topology(self.faces, self.clip.shape[1])
 
 
 def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int) -> Tensor:
@@ -167,9 +168,10 @@ def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int) -> Tenso
         raise RasterInputError(f"faces must be int64, got {faces.dtype}")
     if faces.device != clip.device:
         raise RasterInputError(f"faces on {faces.device} but clip vertices on {clip.device}")
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= clip.shape[1]):
-        raise RasterInputError(f"face indices must lie in [0, {clip.shape[1]}), got [{int(faces.min())}, "
-                               f"{int(faces.max())}]")
+    if faces.numel():
+        lowest, highest = torch.stack(torch.aminmax(faces)).tolist()  # one host read
+        if lowest < 0 or highest >= clip.shape[1]:
+            raise RasterInputError(f"face indices must lie in [0, {clip.shape[1]}), got [{lowest}, {highest}]")
     if height < 1 or width < 1:
         raise RasterInputError(f"image size must be positive, got {height}x{width}")
     if clip.dtype in (torch.float16, torch.bfloat16):
@@ -216,17 +218,17 @@ def _edge_functions(x: Tensor, y: Tensor, px: Tensor, py: Tensor) -> tuple[Tenso
 
 
 def _pair_chunks(counts: Tensor, chunk: int) -> Iterator[tuple[Tensor, Tensor]]:
-    """All pairs (owner, k) with 0 <= k < counts[owner], in slices of at most ``chunk`` pairs."""
-    owners = counts.nonzero().squeeze(1)
-    if owners.numel() == 0:
+    """All pairs (owner, k) with 0 <= k < counts[owner], in slices of at most ``chunk`` pairs; one
+    host read (the total). The first end past a pair's index is its owner's, so owners without
+    pairs are skipped without being listed first."""
+    if counts.numel() == 0:
         return
-    sizes = counts[owners]
-    ends = torch.cumsum(sizes, 0)
+    ends = torch.cumsum(counts, 0)
     total = int(ends[-1])
     for start in range(0, total, chunk):
         idx = torch.arange(start, min(start + chunk, total), device=counts.device)
-        k = torch.searchsorted(ends, idx, right=True)
-        yield owners[k], idx - (ends[k] - sizes[k])
+        owner = torch.searchsorted(ends, idx, right=True)
+        yield owner, idx - (ends[owner] - counts[owner])
 
 
 def _span(lo: Tensor, hi: Tensor, size: int) -> tuple[Tensor, Tensor]:
@@ -250,7 +252,7 @@ def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: Rast
         area = _signed_area(tx, ty)
         # Degenerate: tiny area in pixels, or tiny relative to the longest edge (collinear corners
         # whose area is only rounding noise — that noise grows with the coordinates' magnitude).
-        longest = ((tx - tx[..., [1, 2, 0]]) ** 2 + (ty - ty[..., [1, 2, 0]]) ** 2).amax(-1)
+        longest = ((tx - tx.roll(-1, -1)) ** 2 + (ty - ty.roll(-1, -1)) ** 2).amax(-1)
         eps = _DEGENERATE_REL * torch.finfo(tx.dtype).eps
         drawable = ok[:, faces].all(-1) & (area.abs() > torch.clamp(eps * longest, min=config.min_area_px))
         front = area < 0
@@ -283,7 +285,8 @@ def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: Rast
             quant = ((depth.clamp(-1.0, 1.0) + 1.0) * (0.5 * depth_scale)).long()
             key = (quant << id_bits) | (tri % max(num_faces, 1))
             pixel = (tri // max(num_faces, 1)) * hw + py * width + px
-            zbuf.scatter_reduce_(0, pixel[inside], key[inside], reduce="amin", include_self=True)
+            # Every pair writes (outside ones the neutral key): a masked index would be a host sync.
+            zbuf.scatter_reduce_(0, pixel, torch.where(inside, key, _INT64_MAX), reduce="amin", include_self=True)
 
         covered = zbuf != _INT64_MAX
         face_flat = torch.where(covered, zbuf & ((1 << id_bits) - 1), -1)

@@ -16,6 +16,7 @@ a fraction of its box.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -23,8 +24,9 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.devices import to_device
-from morpheus_core.geometry.nerf import FieldSample, RadianceField
+from morpheus_core.cuda_graphs import GraphedCall
+from morpheus_core.devices import filled_like, to_device
+from morpheus_core.geometry.nerf import RadianceField
 from morpheus_core.render.output import RenderOutput
 
 
@@ -49,20 +51,33 @@ class VolumeRenderConfig:
     """Normals only where a sample's compositing weight (its share of the normal) exceeds this; 0: everywhere."""
     transmittance_threshold: float = 0.0
     """> 0: training renders evaluate only samples whose transmittance (no-grad density probe) exceeds it; 0: off."""
-    # Measured (H200, paper NeRF, one device call): padded 94–95 vs exact 86–99 ms a step at one
-    # object, 319–345 vs 290–301 ms at four, +1.5 / +5.4 GiB; so exact stays the default. Padded
-    # buffers are what a captured (CUDA-graph) step needs: shapes that do not change every step.
-    sample_buffer: Literal["exact", "padded"] = "exact"
-    """How training renders gather the samples to evaluate: ``exact`` (the kept ones; one host sync
-    per gather), ``padded`` (a fixed-size buffer sized by ``SampleBudget``: no sync, shapes that stay put)."""
+    # Measured (H200, paper NeRF, one device call each): eager, padded 94–95 vs exact 86–99 ms a step
+    # at one object, 319–345 vs 290–301 ms at four. Graphed vs exact: 90–99 vs 109–133 ms alone, but
+    # 870 vs 796 ms and 103 vs 65 GiB at eight, and out of memory at sixteen. A batch keeps the GPU
+    # busy, so the padding's extra field work and the graphs' held activations cost more than the
+    # host time they save; alone, the host is what a step waits for.
+    sample_buffer: Literal["auto", "exact", "padded", "graphed"] = "auto"
+    """How training renders gather and evaluate the samples: ``exact`` (the kept ones; one host sync
+    per gather), ``padded`` (a fixed-size buffer sized by ``SampleBudget``: no sync, shapes that stay
+    put), ``graphed`` (padded, and the field's forward and backward on each buffer replayed from a
+    CUDA graph: CUDA only); ``auto``: graphed for an object optimised alone on CUDA, else exact."""
+
+    def sample_buffer_on(self, device: torch.device, alone: bool = True) -> str:
+        """``sample_buffer`` with ``auto`` resolved for ``device`` and whether the object is optimised
+        ``alone`` (not in a batch); ``graphed`` off CUDA raises."""
+        if self.sample_buffer == "auto":
+            return "graphed" if device.type == "cuda" and alone else "exact"
+        if self.sample_buffer == "graphed" and device.type != "cuda":
+            raise ValueError(f"sample_buffer='graphed' needs a CUDA device, got {device}; use auto, exact or padded")
+        return self.sample_buffer
 
     def __post_init__(self) -> None:
         if self.n_samples < 1 or self.chunk_points < 1:
             raise ValueError("n_samples and chunk_points must be ≥ 1")
         if self.max_density <= 0:
             raise ValueError("max_density must be positive")
-        if self.sample_buffer not in ("exact", "padded"):
-            raise ValueError(f"sample_buffer must be exact or padded, got {self.sample_buffer!r}")
+        if self.sample_buffer not in ("auto", "exact", "padded", "graphed"):
+            raise ValueError(f"sample_buffer must be auto, exact, padded or graphed, got {self.sample_buffer!r}")
         for name in ("normal_weight_threshold", "transmittance_threshold"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
@@ -151,32 +166,41 @@ def _query(
     if index.numel() == 0:
         n = points.shape[0]
         return points.new_zeros(n), points.new_zeros(n, 3), points.new_zeros(n, 3) if with_normals else None
-    return _query_at(field, points, index, with_normals, chunk, density_only)
+    if density_only:
+        n = points.shape[0]
+        values = torch.cat([field.density(points[i]).to(points.dtype) for i in index.split(chunk)])
+        return points.new_zeros(n).index_put((index,), values), points.new_zeros(n, 3), None
+    return _query_at(points, index, lambda x: field_values(field, x, with_normals, chunk), with_normals)
+
+
+FieldValues = Callable[[Tensor], tuple[Tensor, ...]]
+"""Points (N, 3) → ``field_values``."""
+
+
+def field_values(field: RadianceField, points: Tensor, with_normals: bool, chunk: int) -> tuple[Tensor, ...]:
+    """The field at ``points`` (N, 3), evaluated ``chunk`` points at a time: density (N,), albedo
+    (N, 3) and, ``with_normals``, normals (N, 3), in ``points``' dtype. Tensors only, so that a
+    CUDA graph can stand in for it (``SampleBudget.evaluator``)."""
+    samples = [field.query(x, with_normals) for x in points.split(chunk)]
+    values = [torch.cat([s.density for s in samples]), torch.cat([s.albedo for s in samples])]
+    if with_normals:
+        values.append(torch.cat([s.normal for s in samples]))  # type: ignore[misc]
+    return tuple(v.to(points.dtype) for v in values)
 
 
 def _query_at(
-    field: RadianceField, points: Tensor, index: Tensor, with_normals: bool, chunk: int, density_only: bool = False,
-    padded: bool = False,
+    points: Tensor, index: Tensor, evaluate: FieldValues, with_normals: bool, padded: bool = False
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The field at the points ``index`` names, zeros elsewhere. ``padded``: entries equal to
-    ``len(points)`` are padding slots (``SampleBudget.gather``); slot i evaluates point i and its
-    result lands in a slot that is cut off. Padding on one shared point would send every padding
-    gradient to the same hash-table cells, and those contended atomics made the backward 3.5×
-    slower (H200)."""
+    """The field (``evaluate``) at the points ``index`` names, zeros elsewhere. ``padded``: entries
+    equal to ``len(points)`` are padding slots (``SampleBudget.gather``); slot i evaluates point i
+    and its result lands in a slot that is cut off. Padding on one shared point would send every
+    padding gradient to the same hash-table cells, and those contended atomics made the backward
+    3.5× slower (H200)."""
     n = points.shape[0]
     source = torch.where(index < n, index, torch.arange(index.shape[0], device=index.device) % n) if padded else index
-
-    def place(values: list[Tensor], width: int | None) -> Tensor:
-        shape = (n + 1,) if width is None else (n + 1, width)
-        return points.new_zeros(shape).index_put((index,), torch.cat(values).to(points.dtype))[:n]
-
-    if density_only:
-        return place([field.density(points[i]) for i in source.split(chunk)], None), points.new_zeros(n, 3), None
-    samples: list[FieldSample] = [field.query(points[i], with_normals) for i in source.split(chunk)]
-    density = place([x.density for x in samples], None)
-    albedo = place([x.albedo for x in samples], 3)
-    normal = place([x.normal for x in samples], 3) if with_normals else None  # type: ignore[misc]
-    return density, albedo, normal
+    # One contiguous buffer per quantity: the compositing reads them whole, not as strided views.
+    placed = [points.new_zeros((n + 1, *v.shape[1:])).index_put((index,), v)[:n] for v in evaluate(points[source])]
+    return placed[0], placed[1], placed[2] if with_normals else None
 
 
 class SampleBudget:
@@ -187,18 +211,44 @@ class SampleBudget:
     order (every ray's first sample, then every ray's second, …), so when more are kept than fit
     the ones dropped are the deepest, behind what the ray has most likely hit already; how many
     were dropped is counted on the device. ``adapt`` (one host read, every few steps: the NeRF
-    stage calls it at each occupancy refresh) resizes each buffer to ``headroom`` × the most
-    samples it was asked for since, rounded up to ``quantum``, so shapes change rarely; a buffer's
-    first gather sizes it the same way from its own count.
+    stage calls it at each occupancy refresh) resizes a buffer to ``headroom`` × the most samples
+    it was asked for since, rounded up to ``quantum``, once that peak leaves ``hold`` × the peak the
+    buffer was sized for (capacity / headroom); a buffer's first gather sizes it the same way from
+    its own count. ``hold`` keeps shapes put while the occupancy drifts a little, because
+    ``graphed`` buffers are CUDA graphs (one per buffer: the field's forward and backward,
+    ``evaluator``) and every new size is a new capture.
     """
 
-    def __init__(self, headroom: float = 1.25, quantum: int = 1 << 16) -> None:
+    def __init__(self, headroom: float = 1.25, quantum: int = 1 << 16, hold: tuple[float, float] = (0.75, 1.125),
+                 graphed: bool = False) -> None:
         if not headroom >= 1.0 or quantum < 1:
             raise ValueError(f"headroom must be ≥ 1 and quantum ≥ 1, got {headroom} and {quantum}")
-        self.headroom, self.quantum = headroom, quantum
+        if not 0.0 <= hold[0] <= 1.0 <= hold[1]:
+            raise ValueError(f"hold must be (low, high) with 0 ≤ low ≤ 1 ≤ high, got {hold}")
+        self.headroom, self.quantum, self.hold, self.graphed = headroom, quantum, hold, graphed
         self.capacity: dict[str, int] = {}
+        self.resizes = 0
+        """Buffers resized by ``adapt`` since the budget was made (for graphed buffers: recaptures)."""
         self._peak: dict[str, Tensor] = {}
         self._dropped: dict[str, Tensor] = {}
+        self._graphs: dict[tuple, GraphedCall] = {}
+
+    def evaluator(self, name: str, field: RadianceField, with_normals: bool, chunk: int) -> FieldValues:
+        """How buffer ``name`` evaluates ``field`` (``field_values``): eagerly, or (``graphed``)
+        replayed from a CUDA graph of the forward and the backward into the field's parameters.
+        One graph per buffer, kept for one size: a graph holds its activations until the next
+        replay, and each buffer's are needed until the step's backward."""
+        def values(x: Tensor) -> tuple[Tensor, ...]:
+            return field_values(field, x, with_normals, chunk)
+
+        if not self.graphed:
+            return values
+        key = (name, id(field), with_normals, chunk)
+        if key not in self._graphs:
+            if not isinstance(field, nn.Module):  # the graph's backward reaches only parameters it was given
+                raise TypeError(f"graphed sample buffers need a field that is an nn.Module, got {type(field).__name__}")
+            self._graphs[key] = GraphedCall(values, list(field.parameters()), keep=1)
+        return self._graphs[key]
 
     def gather(self, name: str, keep: Tensor) -> tuple[Tensor, Tensor]:
         """Flat indices (into ``keep``, (R, S) ray-major) of up to ``capacity`` kept samples, padded
@@ -223,6 +273,11 @@ class SampleBudget:
     def _size(self, peak: int) -> int:
         return max(self.quantum, math.ceil(peak * self.headroom / self.quantum) * self.quantum)
 
+    def _resized(self, capacity: int, peak: int) -> int:
+        sized_for = capacity / self.headroom
+        held = self.hold[0] * sized_for <= peak <= self.hold[1] * sized_for
+        return capacity if held else self._size(peak)
+
     def dropped(self) -> Tensor | None:
         """Samples dropped for want of room, summed over the buffers since the last ``adapt`` (device)."""
         return torch.stack(list(self._dropped.values())).sum() if self._dropped else None
@@ -235,7 +290,9 @@ class SampleBudget:
         names = list(self._peak)
         values = torch.stack([self._peak[k] for k in names] + [self._dropped[k] for k in names]).tolist()
         for name, peak in zip(names, values[:len(names)], strict=True):
-            self.capacity[name] = self._size(peak)
+            size = self._resized(self.capacity[name], peak)
+            self.resizes += size != self.capacity[name]
+            self.capacity[name] = size
         dropped = dict(zip(names, (int(v) for v in values[len(names):]), strict=True))
         self._peak.clear()
         self._dropped.clear()
@@ -252,7 +309,7 @@ def _visible(field: RadianceField, points: Tensor, keep: Tensor, step: Tensor, c
 
 
 def _background(background: Tensor | float | tuple[float, float, float], like: Tensor, batch: int) -> Tensor:
-    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    bg = filled_like(background, like)
     if bg.dim() == 0:
         bg = bg.expand(3)
     return bg.expand(batch, 3) if bg.dim() == 1 else bg
@@ -278,7 +335,7 @@ def render_volume(
         if budget is None:
             return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
         index, _ = budget.gather(key, keep.reshape(-1, s))
-        return _query_at(field, flat, index, normals, config.chunk_points, padded=True)
+        return _query_at(flat, index, budget.evaluator(key, field, normals, config.chunk_points), normals, padded=True)
 
     origins, dirs = cameras.rays(height, width)
     batch = len(cameras)

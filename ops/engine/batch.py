@@ -77,6 +77,8 @@ class BatchTask:
             raise ValueError("objects in one batch must share the stage's guidance configuration")
         self.tasks = list(tasks)
         self.generators = list(generators)
+        for task in self.tasks:
+            task.shared_by = len(self.tasks)
         self.bad_steps = [0] * len(tasks)
         self.stopped: dict[int, int] = {}  # object → the step its scene converged at
         self._live: list[int] = []

@@ -67,6 +67,8 @@ class GuidedTask(ABC):
         self.guidance = replace(guidance.build(steps), check_inputs=False)
         self.schedule = NoiseSchedule()
         self.opt = adam(groups)
+        self.shared_by = 1
+        """How many objects share this task's steps (``ops.engine.batch.BatchTask`` sets it)."""
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {"adam": self.opt}

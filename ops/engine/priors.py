@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
+from morpheus_core.cuda_graphs import release_graphs
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras
@@ -233,6 +234,7 @@ class RealSuite(PriorSuite):
                 loras.remove(self.object_id)
         for model in self.models.values():
             model.forget(self.object_id)
+        release_graphs()  # the shared priors' graphs end with the stage (morpheus_core.cuda_graphs)
 
 
 def build_suite(cfg: PriorsConfig, device: torch.device, reference_dir: Path, object_id: str,

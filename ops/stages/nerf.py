@@ -94,7 +94,9 @@ class NerfTask(GuidedTask):
         ], device)
         # Every render setting of the config reaches both renders; only what a render is for differs.
         self.eval_render = replace(cfg.render, stratified=False, with_normals=False)
-        self.budget = SampleBudget() if cfg.render.sample_buffer == "padded" else None
+        cfg.render.sample_buffer_on(device)  # a buffer this device cannot have fails here, not at the first step
+        self.budget: SampleBudget | None = None
+        self._buffer: str | None = None  # resolved at the first step: a batch says by then that it holds this task
         self.samples_dropped = 0
 
     def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool, key: str) -> Any:
@@ -103,8 +105,14 @@ class NerfTask(GuidedTask):
         return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
                              generator, self.budget, key)
 
+    def _resolve_buffer(self) -> None:
+        if self._buffer is None:
+            self._buffer = self.cfg.render.sample_buffer_on(self.device, alone=self.shared_by == 1)
+            self.budget = SampleBudget(graphed=self._buffer == "graphed") if self._buffer != "exact" else None
+
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         cfg = self.cfg
+        self._resolve_buffer()
         self.field.update_step(step)
         if cfg.use_occupancy and self.occupancy.maybe_refresh(self.field, step, generator) \
                 and self.budget is not None:
@@ -157,6 +165,8 @@ def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfStageConfig, priors:
         write_log(out_dir, result)
         metrics = loop_metrics(result) | {"ref_psnr": task.evaluate()["ref_psnr"],
                                           "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
+        if task.budget is not None:  # under ``graphed``, each resize captured the buffer's graph again
+            metrics["sample_buffer_resizes"] = task.budget.resizes
         return StageResult(metrics, suite.description, str(dev))
 
     return StageJob("nerf", task, generator, cfg.loop, finish, suite.close)
