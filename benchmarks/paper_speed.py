@@ -13,7 +13,7 @@ Modes: ``before`` = the unoptimised path (eager priors, eager hash grid, one obj
 batch (``ops.engine.batch``).
 
     python benchmarks/paper_speed.py --device cuda --mode before --batches 1 --profile --tag h200
-    python benchmarks/paper_speed.py --device cuda --mode after --batches 1 4 8 16 --profile --tag h200
+    python benchmarks/paper_speed.py --device cuda --mode after --batches 1 4 8 16 --profile 1 8 --tag h200
     python benchmarks/paper_speed.py --device cpu --scale tiny --preset draft --batches 1 2 --steps 2  # smoke
 """
 
