@@ -64,21 +64,37 @@ def assert_near(got: torch.Tensor | None, want: torch.Tensor | None, rel: float)
     assert err <= rel * scale, f"max abs error {err:.3g} > {rel:g} × {scale:.3g}"
 
 
-def compare(config: HashGridConfig, level_mask: torch.Tensor, n: int = 160, seed: int = 0) -> None:
+def compare(config: HashGridConfig, level_mask: torch.Tensor, n: int = 160, seed: int = 0, objects: int = 1) -> None:
+    """Kernels against the eager code; ``objects`` > 1: that many tables one after another, each point
+    reading the table of a random object (``encode_stacked``'s row bases)."""
     x, table, tables = inputs(config, n, seed)
+    base = None
+    if objects > 1:
+        g = torch.Generator().manual_seed(seed + 2)
+        table = torch.cat([table] + [torch.randn(table.shape, generator=g).to(DEVICE) for _ in range(objects - 1)])
+        base = (torch.randint(0, objects, (n,), generator=g) * (table.shape[0] // objects)).to(DEVICE)
     mask = level_mask.to(DEVICE)
-    ref = _encode(x, table, tables, mask)
-    out = hashgrid_triton.encode_forward(x, table, tables, mask)
+    ref = _encode(x, table, tables, mask, base)
+    out = hashgrid_triton.encode_forward(x, table, tables, mask, base)
     assert_near(out, ref, 2e-6)
     grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(seed + 1)).to(DEVICE)
-    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True)
-    got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True)
+    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True, base)
+    got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True, base)
     assert_near(got_gx, want_gx, 2e-6)
     assert_near(got_gt, want_gt, 2e-6)
     # The table-only backward runs another grid (one level per program): the same gradient.
-    none_x, only_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, False, True)
+    none_x, only_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, False, True, base)
     assert none_x is None
     assert_near(only_gt, want_gt, 2e-6)
+    if base is not None:  # every object's table got gradient from its own points only
+        rows = table.shape[0] // objects
+        for k in range(objects):
+            assert (got_gt[k * rows:(k + 1) * rows].abs().sum() > 0) == bool((base == k * rows).any())
+
+
+def test_stacked_objects_match_eager() -> None:
+    compare(mixed(2), torch.ones(5), n=300, seed=3, objects=3)
+    compare(integer_scales(4), (torch.arange(4) < 3).float(), n=200, seed=4, objects=2)
 
 
 @pytest.mark.parametrize(("make", "features"), [(mixed, 2), (mixed, 4), (integer_scales, 2), (integer_scales, 4),

@@ -147,14 +147,14 @@ def _level_setup(x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, ma
 
 
 @_jit
-def _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
+def _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
                    F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
     _scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active = _level_setup(
         x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK)
     feats = tl.arange(0, F)
     acc = tl.zeros([BLOCK, F], dtype=tl.float32)
     for corner in tl.static_range(8):
-        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED)
+        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED) + base
         wx, wy, wz = _axis_weights(f0, f1, f2, corner)
         w = (wz * wy) * wx
         vals = tl.load(table_ptr + row[:, None] * F + feats[None, :], mask=active[:, None], other=0.0)
@@ -163,19 +163,30 @@ def _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, o
 
 
 @_jit
-def _forward_kernel(x_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
-                    n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr):
-    level = tl.program_id(1)
-    offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
-    valid = offs < n_points
+def _load_points(x_ptr, base_ptr, offs, valid, BLOCK: tl.constexpr, STACKED: tl.constexpr):
+    """A block's coordinates, and the first table row of each point's object (0 unless STACKED)."""
     x0 = tl.load(x_ptr + offs * 3, mask=valid, other=0.0)
     x1 = tl.load(x_ptr + offs * 3 + 1, mask=valid, other=0.0)
     x2 = tl.load(x_ptr + offs * 3 + 2, mask=valid, other=0.0)
+    if STACKED:
+        base = tl.load(base_ptr + offs, mask=valid, other=0)
+    else:
+        base = tl.zeros([BLOCK], dtype=tl.int64)
+    return x0, x1, x2, base
+
+
+@_jit
+def _forward_kernel(x_ptr, base_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                    n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr, STACKED: tl.constexpr):
+    level = tl.program_id(1)
+    offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
+    valid = offs < n_points
+    x0, x1, x2, base = _load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
     if level < n_dense:  # dense levels are a prefix of the levels: uniform per program
-        acc = _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+        acc = _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
                              level, F, BLOCK, False)
     else:
-        acc = _forward_level(x0, x1, x2, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+        acc = _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
                              level, F, BLOCK, True)
     feats = tl.arange(0, F)
     ptrs = out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
@@ -183,7 +194,7 @@ def _forward_kernel(x_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, off
 
 
 @_jit
-def _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+def _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
                     rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr, BLOCK: tl.constexpr,
                     HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
     """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution."""
@@ -196,7 +207,7 @@ def _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table
     d1 = tl.zeros([BLOCK], dtype=tl.float32)
     d2 = tl.zeros([BLOCK], dtype=tl.float32)
     for corner in tl.static_range(8):
-        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED)
+        row = _corner_row(c0, c1, c2, res, rows, offset, corner, HASHED) + base
         wx, wy, wz = _axis_weights(f0, f1, f2, corner)
         row_ptrs = row[:, None] * F + feats[None, :]
         if WANT_TABLE:
@@ -226,27 +237,25 @@ def _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table
 
 
 @_jit
-def _backward_kernel(x_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr, scale_ptr, res_ptr, rows_ptr,
-                     offset_ptr, mask_ptr, n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr,
-                     WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
+def _backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr, scale_ptr, res_ptr,
+                     rows_ptr, offset_ptr, mask_ptr, n_points, n_levels, n_dense, F: tl.constexpr,
+                     BLOCK: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr, STACKED: tl.constexpr):
     offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
     valid = offs < n_points
-    x0 = tl.load(x_ptr + offs * 3, mask=valid, other=0.0)
-    x1 = tl.load(x_ptr + offs * 3 + 1, mask=valid, other=0.0)
-    x2 = tl.load(x_ptr + offs * 3 + 2, mask=valid, other=0.0)
+    x0, x1, x2, base = _load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
     if WANT_X:  # grid (blocks, 1): every level in this program, grad_x summed in registers
         g0 = tl.zeros([BLOCK], dtype=tl.float32)
         g1 = tl.zeros([BLOCK], dtype=tl.float32)
         g2 = tl.zeros([BLOCK], dtype=tl.float32)
         for level in range(0, n_dense):
-            d0, d1, d2 = _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
+            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
                                          scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
                                          F, BLOCK, False, WANT_X, WANT_TABLE)
             g0 += d0
             g1 += d1
             g2 += d2
         for level in range(n_dense, n_levels):
-            d0, d1, d2 = _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
+            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
                                          scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
                                          F, BLOCK, True, WANT_X, WANT_TABLE)
             g0 += d0
@@ -259,10 +268,10 @@ def _backward_kernel(x_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr,
     else:  # grid (blocks, levels): the table gradient alone, one level per program
         level = tl.program_id(1)
         if level < n_dense:
-            _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+            _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
                             rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, False, False, WANT_TABLE)
         else:
-            _backward_level(x0, x1, x2, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
+            _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
                             rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, True, False, WANT_TABLE)
 
 
@@ -321,9 +330,21 @@ def _device_guard(x: Tensor) -> Any:
     return torch.cuda.device(x.device) if x.device.type == "cuda" else contextlib.nullcontext()
 
 
-def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:
+def _row_bases(x: Tensor, base: Tensor | None) -> Tensor:
+    """The kernels' base pointer: the points' first table rows (``hashgrid.encode_stacked``), or any
+    int64 tensor when there is none (the STACKED flag then drops the load)."""
+    if base is None:
+        return x.new_zeros(1, dtype=torch.int64)
+    if base.shape != (x.shape[0],) or base.device != x.device:
+        raise ValueError(f"row bases must be ({x.shape[0]},) on {x.device}, got {tuple(base.shape)} on {base.device}")
+    return base.to(torch.int64).contiguous()
+
+
+def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor,
+                   base: Tensor | None = None) -> Tensor:
     """(N, 3) points → (N, L·F) features in the table's dtype; as ``hashgrid._encode``."""
     consts = _check(x, table, tables)
+    bases = _row_bases(x, base)
     x = x.contiguous()
     table = table.contiguous()
     mask = level_mask.to(device=x.device, dtype=torch.float32).contiguous()
@@ -333,15 +354,17 @@ def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: T
         return out
     grid = (triton.cdiv(n, _BLOCK), consts.n_levels)
     with _device_guard(x):
-        _forward_kernel[grid](x, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
-                              n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK, **_launch_options())
+        _forward_kernel[grid](x, bases, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
+                              n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
+                              STACKED=base is not None, **_launch_options())
     return out
 
 
 def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, grad_out: Tensor,
-                    want_x: bool, want_table: bool) -> tuple[Tensor | None, Tensor | None]:
+                    want_x: bool, want_table: bool, base: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
     """(grad_x, grad_table), each None unless wanted; as ``hashgrid._encode_backward``."""
     consts = _check(x, table, tables)
+    bases = _row_bases(x, base)
     if not (want_x or want_table):
         return None, None
     x = x.contiguous()
@@ -361,9 +384,10 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
         gt = grad_table if grad_table is not None else x
         gx = grad_x if grad_x is not None else x
         with _device_guard(x):
-            _backward_kernel[grid](x, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows, consts.offsets,
-                                   mask, n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
-                                   WANT_X=bool(want_x), WANT_TABLE=bool(want_table), **_launch_options())
+            _backward_kernel[grid](x, bases, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows,
+                                   consts.offsets, mask, n, consts.n_levels, consts.n_dense, F=n_features,
+                                   BLOCK=_BLOCK, WANT_X=bool(want_x), WANT_TABLE=bool(want_table),
+                                   STACKED=base is not None, **_launch_options())
     if grad_table is not None and grad_table.dtype != table.dtype:
         grad_table = grad_table.to(table.dtype)
     return grad_x, grad_table

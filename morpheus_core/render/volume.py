@@ -16,6 +16,7 @@ a fraction of its box.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -203,6 +204,51 @@ def _background(background: Tensor | float | tuple[float, float, float], like: T
     return bg.expand(batch, 3) if bg.dim() == 1 else bg
 
 
+Query = Callable[[Tensor, bool, str], tuple[Tensor, Tensor, Tensor | None]]
+"""(keep (R, S), with normals, buffer name) → density, albedo, normals at the kept samples, zeros elsewhere."""
+
+
+def _bins(n_rays: int, s: int, like: Tensor, config: VolumeRenderConfig, generator: torch.Generator | None) -> Tensor:
+    """(R, S) sample positions in bin units along each ray: jittered within the bins, or their centres."""
+    u = torch.arange(s, dtype=like.dtype, device=like.device)
+    if not config.stratified:
+        return (u + 0.5).expand(n_rays, s)
+    # Drawn by the CPU generator as always: drawing it on the GPU from a seed of that generator
+    # (no 16 MB copy) shifted the results systematically — reference PSNR up, novel-view PSNR
+    # down, on the GPU (24 pairs) and emulated on the CPU (8 pairs): benchmarks/results/quality_nosync_h200.md.
+    return u + to_device(torch.rand((n_rays, s), generator=generator, dtype=like.dtype), like.device)
+
+
+def _samples(o: Tensor, d: Tensor, near: Tensor, far: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    step = ((far - near) / u.shape[1]).unsqueeze(-1)  # δ per ray: the bin width
+    t = near.unsqueeze(-1) + u * step  # (R, S)
+    return t, step, o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+
+
+def _composite(query: Query, keep: Tensor, t: Tensor, step: Tensor, bg: Tensor, config: VolumeRenderConfig,
+               key: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per-ray rgb on ``bg``, opacity, depth and normal (R, ·) from the field at the ``keep`` samples."""
+    s = t.shape[1]
+    density, albedo, _ = query(keep, False, key)
+    density = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(-1, s)
+    tau = density * step
+    cum = torch.cumsum(tau, -1)
+    log_t = torch.cat((torch.zeros_like(cum[:, :1]), -cum[:, :-1]), -1)
+    weights = torch.exp(log_t) * -torch.expm1(-tau)  # (R, S)
+    opacity = -torch.expm1(-cum[:, -1:])
+    rgb = (weights.unsqueeze(-1) * albedo.reshape(-1, s, 3)).sum(1) + (1 - opacity) * bg
+    depth = (weights * t).sum(-1, keepdim=True)
+    if not config.with_normals:
+        return rgb, opacity, depth, torch.zeros_like(rgb)
+    visible = keep & (weights.detach() > config.normal_weight_threshold)
+    _, _, normal = query(visible, True, f"{key}/normals")
+    return rgb, opacity, depth, (weights.unsqueeze(-1) * normal.reshape(-1, s, 3)).sum(1)  # type: ignore[union-attr]
+
+
+def _images(values: tuple[Tensor, ...], batch: int, height: int, width: int) -> RenderOutput:
+    return RenderOutput(*(x.reshape(batch, height, width, -1) for x in values))
+
+
 def render_volume(
     field: RadianceField,
     cameras: Cameras,
@@ -222,52 +268,21 @@ def render_volume(
     def query(keep: Tensor, normals: bool, key: str) -> tuple[Tensor, Tensor, Tensor | None]:
         if budget is None:
             return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
-        index, _ = budget.gather(key, keep.reshape(-1, s))
+        index, _ = budget.gather(key, keep)
         return _query_at(flat, index, budget.evaluator(key, field, normals, config.chunk_points), normals, padded=True)
 
     origins, dirs = cameras.rays(height, width)
-    batch = len(cameras)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     near, far, hit = ray_box(o, d, field.bbox_radius)
-    s = config.n_samples
-    u = torch.arange(s, dtype=o.dtype, device=o.device)
-    if config.stratified:
-        # Drawn by the CPU generator as always: drawing it on the GPU from a seed of that generator
-        # (no 16 MB copy) shifted the results systematically — reference PSNR up, novel-view PSNR
-        # down, on the GPU (24 pairs) and emulated on the CPU (8 pairs): benchmarks/results/quality_nosync_h200.md.
-        u = u + to_device(torch.rand((o.shape[0], s), generator=generator, dtype=o.dtype), o.device)
-    else:
-        u = (u + 0.5).expand(o.shape[0], s)
-    step = ((far - near) / s).unsqueeze(-1)  # δ per ray: the bin width
-    t = near.unsqueeze(-1) + u * step  # (R, S)
-    points = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
-    keep = hit.unsqueeze(-1).expand(-1, s)
+    t, step, points = _samples(o, d, near, far, _bins(o.shape[0], config.n_samples, o, config, generator))
+    keep = hit.unsqueeze(-1).expand(-1, config.n_samples)
     if occupancy is not None:
         keep = keep & occupancy.occupied(points)
     flat = points.reshape(-1, 3)
     if config.transmittance_threshold > 0 and torch.is_grad_enabled():
         keep = _visible(field, flat, keep, step, config)
-    density, albedo, _ = query(keep, False, budget_key)
-    density = torch.nan_to_num(density, nan=0.0).clamp(0.0, config.max_density).reshape(-1, s)
-    tau = density * step
-    cum = torch.cumsum(tau, -1)
-    log_t = torch.cat((torch.zeros_like(cum[:, :1]), -cum[:, :-1]), -1)
-    weights = torch.exp(log_t) * -torch.expm1(-tau)  # (R, S)
-    opacity = -torch.expm1(-cum[:, -1:])
-    bg = _background(background, o, batch).repeat_interleave(height * width, 0)
-    rgb = (weights.unsqueeze(-1) * albedo.reshape(-1, s, 3)).sum(1) + (1 - opacity) * bg
-    depth = (weights * t).sum(-1, keepdim=True)
-    if config.with_normals:
-        visible = keep.reshape(-1) & (weights.detach().reshape(-1) > config.normal_weight_threshold)
-        _, _, normal = query(visible, True, f"{budget_key}/normals")
-        nrm = (weights.unsqueeze(-1) * normal.reshape(-1, s, 3)).sum(1)  # type: ignore[union-attr]
-    else:
-        nrm = torch.zeros_like(rgb)
-
-    def image(x: Tensor) -> Tensor:
-        return x.reshape(batch, height, width, -1)
-
-    return RenderOutput(image(rgb), image(opacity), image(depth), image(nrm))
+    bg = _background(background, o, len(cameras)).repeat_interleave(height * width, 0)
+    return _images(_composite(query, keep, t, step, bg, config, budget_key), len(cameras), height, width)
 
 
 @torch.no_grad()
