@@ -109,6 +109,21 @@ class Rig:
             raise
 
 
+def build_rig(device: str, mode: str, preset_name: str, scale: str, overrides: list[str], store: Path,
+              work: Path) -> Rig:
+    """The mode's settings (``MODES``) applied to this process, the example references prepared in
+    ``store`` and the priors built: what every timed row starts from."""
+    os.environ["MORPHEUS_COMPILE"] = MODES[mode]["compile"]
+    dev = torch.device(device)
+    accel = MODES[mode]["accel"] if dev.type == "cuda" else "eager"
+    cfg = preset(preset_name, [f"device={device}", "priors.kind=real", f"priors.accel={accel}", *overrides])
+    if dev.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    refs = prepare_references(store, preset(preset_name, ["device=cpu"]))
+    return Rig(cfg, dev, refs, scale, work)
+
+
 def _timed_loop(task: Any, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
     t0 = time.perf_counter()
     run_loop(task, LoopConfig(warmup, log_every=10**9), gen, "warmup")
@@ -295,17 +310,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     mode = MODES[args.mode]
-    os.environ["MORPHEUS_COMPILE"] = mode["compile"]
-    dev = torch.device(args.device)
-    accel = mode["accel"] if dev.type == "cuda" else "eager"
-    cfg = preset(args.preset, [f"device={args.device}", "priors.kind=real", f"priors.accel={accel}", *args.overrides])
-    if dev.type == "cuda":
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
-    refs = prepare_references(args.store, preset(args.preset, ["device=cpu"]))
     work = Path(tempfile.mkdtemp(prefix="paper_speed_"))
     t_start = time.perf_counter()
-    rig = Rig(cfg, dev, refs, args.scale, work)
+    rig = build_rig(args.device, args.mode, args.preset, args.scale, args.overrides, args.store, work)
+    cfg, dev, accel = rig.cfg, rig.dev, rig.cfg.priors.accel
     rows: list[dict] = []
     profiles: list[str] = []
     schedule = {"nerf": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,

@@ -3,7 +3,7 @@
     morpheus3d-dagster add-photos [NAME ...]        register photos of $MORPHEUS_PHOTO_DIR, print keys
     morpheus3d-dagster materialize [NAME ...]       run all six assets per photo, in this process
     morpheus3d-dagster status                       fresh / stale / missing per photo
-    morpheus3d-dagster gpu-pool [--limit N]         set the "gpu" pool's limit to this host's GPU count
+    morpheus3d-dagster gpu-pool [--limit N]         set the "gpu" pool's limit to GPUs × MORPHEUS_GPU_SLOTS
     morpheus3d-dagster migrate-history              carry materialisations of renamed asset keys over
 
 Runs are recorded in the instance at ``$DAGSTER_HOME`` (``make dagster`` shows them in the UI).
@@ -24,7 +24,7 @@ from typing import TextIO
 
 import dagster as dg
 
-from ops.engine.gpu_lease import GPUS_ENV, gpu_count
+from ops.engine.gpu_lease import GPUS_ENV, SLOTS_ENV, gpu_count, gpu_slots
 from ops.stages.bake import ASSET_GLB
 from ops.stages.checks import read_report
 from orchestration.assets import GPU_POOL
@@ -101,20 +101,21 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
 
 
 def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
-    """Set the ``gpu`` pool's limit to the GPUs runs may lease here (``ops.engine.gpu_lease``; at least 1, so
-    a CPU host still runs its GPU stages on the CPU one at a time). A limit set before is kept
-    unless ``force``.
+    """Set the ``gpu`` pool's limit to the leases runs may hold here, GPUs × ``MORPHEUS_GPU_SLOTS``
+    (``ops.engine.gpu_lease``; at least 1, so a CPU host still runs its GPU stages on the CPU one at
+    a time). A limit set before is kept unless ``force``.
 
     ``add-photos`` and ``materialize`` call it too: a pool left on dagster.yaml's ``default_limit``
     is created by the first GPU step that claims a slot, and on Postgres two runs doing that at once
     fail one of them (duplicate key in ``concurrency_limits``; Dagster issue 33552). A limit set
     here is never re-initialised by the steps."""
     storage = _instance().event_log_storage
-    found = gpu_count()
-    wanted = limit if limit is not None else max(1, found)
+    found, slots = gpu_count(), gpu_slots()
+    wanted = limit if limit is not None else max(1, found * slots)
     if GPU_POOL in storage.get_concurrency_keys() and not force:
         current = storage.get_concurrency_info(GPU_POOL).slot_count
-        print(f"pool {GPU_POOL!r} keeps its limit {current} ({found} GPU(s) found; --force sets {wanted})", file=out)
+        print(f"pool {GPU_POOL!r} keeps its limit {current} ({found} GPU(s) × {slots} slot(s) found; --force sets "
+              f"{wanted})", file=out)
         return 0
     try:
         storage.set_concurrency_slots(GPU_POOL, wanted)
@@ -123,8 +124,8 @@ def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
             raise
         print(f"pool {GPU_POOL!r} was just set by another process", file=out)
         return 0
-    print(f"pool {GPU_POOL!r} limit {wanted} ({found} GPU(s) found via {GPUS_ENV} / CUDA_VISIBLE_DEVICES / torch)",
-          file=out)
+    print(f"pool {GPU_POOL!r} limit {wanted} ({found} GPU(s) found via {GPUS_ENV} / CUDA_VISIBLE_DEVICES / torch, "
+          f"{slots} run(s) each: {SLOTS_ENV})", file=out)
     return 0
 
 
@@ -140,7 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         p = sub.add_parser(name, help=text)
         if name != "status":
             p.add_argument("names", nargs="*", help="photo file names in the folder (default: all)")
-    pool = sub.add_parser("gpu-pool", help="set the gpu pool's limit to the number of GPUs found")
+    pool = sub.add_parser("gpu-pool", help="set the gpu pool's limit to the GPUs found × MORPHEUS_GPU_SLOTS")
     pool.add_argument("--limit", type=int, help="this limit instead of the GPU count")
     pool.add_argument("--force", action="store_true", help="replace a limit set before")
     sub.add_parser("migrate-history", help="show the materialisations of the asset keys from before the stage ids "

@@ -1,5 +1,6 @@
-"""GPU leases: which GPUs, processes never sharing one, a killed holder freeing its GPU at once, a
-waiting run saying so; the gpu pool's limit; staging liveness by lock instead of process id."""
+"""GPU leases: which GPUs, processes never sharing one (or sharing it by slots, never more), a
+killed holder freeing its GPU at once, a waiting run saying so; the gpu pool's limit; staging
+liveness by lock instead of process id."""
 
 from __future__ import annotations
 
@@ -63,6 +64,71 @@ def test_competing_processes_never_share_a_gpu(tmp_path: Path) -> None:
         mine = sorted((s[2], s[3]) for s in spans if s[0] == gpu)
         assert all(a_end <= b_start for (_, a_end), (b_start, _) in itertools.pairwise(mine)), gpu
     assert all(s[1] == f"cuda:{s[0]}" for s in spans)
+
+
+def _max_overlap(spans: list[tuple[float, float]]) -> int:
+    events = sorted([(a, 1) for a, _ in spans] + [(b, -1) for _, b in spans], key=lambda e: (e[0], e[1]))
+    return max(itertools.accumulate(d for _, d in events))
+
+
+def test_slots_let_that_many_processes_share_a_gpu_and_no_more(tmp_path: Path) -> None:
+    body = """
+        for _ in range(3):
+            with gpu_lease(settings) as lease:
+                start = time.time(); time.sleep(0.2)
+                print(json.dumps([lease.gpu, lease.slot, lease.slots, start, time.time()]), flush=True)
+    """
+    procs = [_worker(tmp_path / "leases", "0,1", body, MORPHEUS_GPU_SLOTS="2") for _ in range(6)]
+    spans = []
+    for p in procs:
+        out, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+        spans += [json.loads(line) for line in out.splitlines()]
+    assert len(spans) == 18 and {(s[0], s[1]) for s in spans} == {("0", 0), ("0", 1), ("1", 0), ("1", 1)}
+    assert all(s[2] == 2 for s in spans)
+    for gpu in "01":
+        assert _max_overlap([(s[3], s[4]) for s in spans if s[0] == gpu]) == 2, gpu  # shared, by two at most
+        for slot in (0, 1):
+            mine = sorted((s[3], s[4]) for s in spans if s[0] == gpu and s[1] == slot)
+            assert all(a_end <= b_start for (_, a_end), (b_start, _) in itertools.pairwise(mine)), (gpu, slot)
+
+
+def test_runs_spread_over_the_gpus_before_sharing_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MORPHEUS_GPUS", "0,1")
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "2")
+    settings = LeaseSettings(folder=tmp_path / "leases", poll_s=0.02, timeout_s=0.2)
+    with gpu_lease(settings) as a, gpu_lease(settings) as b, gpu_lease(settings) as c, gpu_lease(settings) as d:
+        assert {a.gpu, b.gpu} == {"0", "1"} and a.slot == b.slot == 0
+        assert {c.gpu, d.gpu} == {"0", "1"} and c.slot == d.slot == 1
+        assert c.describe().startswith(f"GPU {c.gpu} slot 2 of 2 (cuda:{c.gpu}), leased after waiting")
+        assert c.lock_path.name == f"gpu-{c.gpu}.slot1.lock" and a.lock_path.name == f"gpu-{a.gpu}.lock"
+        with pytest.raises(GpuLeaseError, match="came free"), gpu_lease(settings):
+            pass
+
+
+@pytest.mark.parametrize("value", ["0", "two", "-1", ""])
+def test_a_bad_slot_setting_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, value: str) -> None:
+    monkeypatch.setenv("MORPHEUS_GPUS", "0")
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", value)
+    with pytest.raises(GpuLeaseError, match=r"MORPHEUS_GPU_SLOTS.*whole number"), \
+            gpu_lease(LeaseSettings(folder=tmp_path / "leases")):
+        pass
+    assert not (tmp_path / "leases").exists()  # nothing taken, nothing written
+
+
+def test_running_out_of_memory_names_the_settings_to_lower(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import torch
+
+    monkeypatch.setenv("MORPHEUS_GPUS", "0")
+    monkeypatch.setenv("MORPHEUS_LEASE_DIR", str(tmp_path / "leases"))
+    for slots, expected in (("3", "MORPHEUS_GPU_SLOTS=3 runs share each GPU"), ("1", "lower MORPHEUS_BATCH")):
+        monkeypatch.setenv("MORPHEUS_GPU_SLOTS", slots)
+        with pytest.raises(torch.OutOfMemoryError) as caught, leased_device("cuda"):
+            raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 384.00 MiB.")
+        assert any(expected in note for note in caught.value.__notes__)
+    with pytest.raises(ValueError) as other, leased_device("cuda"):
+        raise ValueError("a bad setting")
+    assert not getattr(other.value, "__notes__", None)  # only memory errors get the hint
 
 
 def test_a_killed_holder_frees_its_gpu_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -134,6 +200,10 @@ def test_gpu_pool_limit_is_the_gpu_count(tmp_path: Path, monkeypatch: pytest.Mon
     assert main(["gpu-pool"]) == 0 and limit() == 3  # a limit set before is kept
     assert "keeps its limit 3" in capsys.readouterr().out
     assert main(["gpu-pool", "--force"]) == 0 and limit() == 1  # a CPU host: one at a time
+    monkeypatch.setenv("MORPHEUS_GPUS", "0,1,2")
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "2")
+    assert main(["gpu-pool", "--force"]) == 0 and limit() == 6  # every slot of every GPU
+    assert "3 GPU(s) found" in capsys.readouterr().out
 
 
 def test_registering_photos_sets_the_gpu_pool_before_any_run_claims_it(tmp_path: Path,

@@ -175,6 +175,21 @@ def test_real_priors_requested_without_weights_fail_naming_the_folder(tmp_path: 
     assert Store(tmp_path / "store").read_manifest(KEY, "nerf") is None  # nothing half-written
 
 
+def test_running_out_of_gpu_memory_fails_the_photo_naming_what_to_lower(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from ops.stages.nerf import NerfTask
+
+    def oom(*_args: object, **_kwargs: object) -> None:
+        raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB.")
+
+    monkeypatch.setattr(NerfTask, "render_step", oom)
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "2")
+    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), tiny_config(), "tiny", KEY, until="nerf")
+    assert out.status == "failed" and out.error.startswith("nerf: OutOfMemoryError: CUDA out of memory")
+    assert "MORPHEUS_GPU_SLOTS=2 runs share each GPU" in out.error and "MORPHEUS_BATCH" in out.error
+    assert Store(tmp_path / "store").read_manifest(KEY, "nerf") is None  # nothing half-written
+
+
 def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoOutcome], tmp_path: Path) -> None:
     """--init-mesh: DMTet from the asset's winding number, texture warm-started from its bake."""
     src, _ = finished

@@ -1,4 +1,5 @@
-"""Exclusive, crash-safe GPU leases: every run that needs a GPU takes one free device of the host.
+"""Crash-safe GPU leases: every run that needs a GPU takes a free slot of one device of the host
+(one slot per GPU unless ``$MORPHEUS_GPU_SLOTS`` says more: a GPU is then exclusive).
 
 Without leases every run asks for ``cuda`` and lands on GPU 0, so a ``gpu`` pool of 8 on an 8-GPU
 host puts eight runs on one device. A lease is an ``fcntl.flock`` on ``gpu-<id>.lock`` in a folder
@@ -11,6 +12,16 @@ Which GPUs: ``$MORPHEUS_GPUS`` (physical ids, comma-separated; ``none`` for none
 ``$CUDA_VISIBLE_DEVICES``, else every device torch sees. Lock files are named by physical id, so
 processes with different ``CUDA_VISIBLE_DEVICES`` still never share a device; the torch device
 is the id's position among the visible ones.
+
+Slots: ``$MORPHEUS_GPU_SLOTS`` runs may hold one GPU at once (default 1: a GPU is exclusive). The
+stages wait for the host at a batch of 8 (profiles in ``benchmarks/results``), so a second and third
+process fill the GPU's idle time: three runs of 4 objects made 1.67× the objects per GPU-hour of
+one run of 8 on an H200 in one device call (1.73× and 1.86× in two others;
+``benchmarks/results/gpu_sharing_h200.md``), each run being slower. The
+runs' peaks add up, so slots × the peak of one run must fit the GPU's memory; a GPU in an
+exclusive compute mode takes one process only. Slot ``k`` is the lock ``gpu-<id>.slot<k>.lock``
+(slot 0 keeps ``gpu-<id>.lock``); runs take slot 0 of every GPU before any slot 1, so they spread
+over the GPUs first.
 """
 
 from __future__ import annotations
@@ -30,6 +41,7 @@ from assets_store.fsutil import try_lock
 log = logging.getLogger(__name__)
 
 GPUS_ENV = "MORPHEUS_GPUS"
+SLOTS_ENV = "MORPHEUS_GPU_SLOTS"
 LEASE_DIR_ENV = "MORPHEUS_LEASE_DIR"
 
 
@@ -52,9 +64,12 @@ class GpuLease:
     device: str  # the torch device in this process, e.g. "cuda:1"
     lock_path: Path
     waited_s: float
+    slot: int = 0  # which of the GPU's ``slots`` this run holds
+    slots: int = 1
 
     def describe(self) -> str:
-        return f"GPU {self.gpu} ({self.device}), leased after waiting {self.waited_s:.1f} s"
+        shared = f" slot {self.slot + 1} of {self.slots}" if self.slots > 1 else ""
+        return f"GPU {self.gpu}{shared} ({self.device}), leased after waiting {self.waited_s:.1f} s"
 
 
 def _ids(text: str, name: str) -> list[str]:
@@ -88,8 +103,21 @@ def visible_gpus(env: Mapping[str, str] | None = None) -> list[tuple[str, str]]:
 
 
 def gpu_count(env: Mapping[str, str] | None = None) -> int:
-    """How many GPUs the host's runs may use: the ``gpu`` pool's default limit (0 on a CPU host)."""
+    """How many GPUs the host's runs may use (0 on a CPU host)."""
     return len(visible_gpus(env))
+
+
+def gpu_slots(env: Mapping[str, str] | None = None) -> int:
+    """Runs that may hold one GPU at once (``$MORPHEUS_GPU_SLOTS``, default 1)."""
+    env = os.environ if env is None else env
+    text = env.get(SLOTS_ENV, "1").strip()
+    if not text.isdigit() or int(text) < 1:
+        raise GpuLeaseError(f"{SLOTS_ENV}={text!r} must be a whole number ≥ 1 (runs per GPU; 1: exclusive)")
+    return int(text)
+
+
+def _lock_file(folder: Path, gpu: str, slot: int) -> Path:
+    return folder / (f"gpu-{gpu}.lock" if slot == 0 else f"gpu-{gpu}.slot{slot}.lock")
 
 
 def _take(path: Path) -> int | None:
@@ -106,12 +134,13 @@ def gpu_lease(settings: LeaseSettings | None = None, want: str | None = None,
               on_wait: Callable[[float, list[str]], None] | None = None) -> Iterator[GpuLease]:
     """Hold one free GPU (``want``: only this physical id) for the ``with`` block.
 
-    Waits while all are taken, calling ``on_wait(seconds waited, busy ids)`` every
+    Waits while every slot of them is taken, calling ``on_wait(seconds waited, busy ids)`` every
     ``report_every_s`` (default: a log line); raises ``GpuLeaseError`` when none is configured or
     ``timeout_s`` passes.
     """
     s = settings or LeaseSettings()
     gpus = visible_gpus()
+    slots = gpu_slots()
     if want is not None:
         gpus = [g for g in gpus if g[0] == want]
     if not gpus:
@@ -123,12 +152,12 @@ def gpu_lease(settings: LeaseSettings | None = None, want: str | None = None,
     start = last_report = time.monotonic()
     report = on_wait or (lambda waited, busy: log.info("waiting %.0f s for a GPU: %s busy", waited, ", ".join(busy)))
     while True:
-        for gpu, device in order:
-            path = s.folder / f"gpu-{gpu}.lock"
+        for slot, (gpu, device) in ((k, g) for k in range(slots) for g in order):
+            path = _lock_file(s.folder, gpu, slot)
             fd = _take(path)
             if fd is None:
                 continue
-            lease = GpuLease(gpu, device, path, round(time.monotonic() - start, 3))
+            lease = GpuLease(gpu, device, path, round(time.monotonic() - start, 3), slot, slots)
             log.info("leased %s", lease.describe())
             try:
                 yield lease
@@ -173,4 +202,21 @@ def leased_device(device: str, settings: LeaseSettings | None = None,
         yield device, None
         return
     with gpu_lease(settings, want, on_wait) as lease:
-        yield lease.device, lease
+        try:
+            yield lease.device, lease
+        except Exception as exc:
+            hint = memory_hint(exc)
+            if hint:
+                exc.add_note(hint)
+            raise
+
+
+def memory_hint(exc: BaseException) -> str | None:
+    """What to change when a run ran out of GPU memory: with slots, the neighbours' peaks count too."""
+    if not (isinstance(exc, RuntimeError) and "out of memory" in str(exc).lower() and "cuda" in str(exc).lower()):
+        return None
+    slots = gpu_slots()
+    if slots > 1:
+        return (f"{SLOTS_ENV}={slots} runs share each GPU and their memory peaks add up: lower {SLOTS_ENV} "
+                "or MORPHEUS_BATCH (benchmarks/results/gpu_sharing_h200.md lists the peaks)")
+    return "lower MORPHEUS_BATCH (objects per batch) or the preset's sizes"

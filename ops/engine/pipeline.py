@@ -28,7 +28,7 @@ from assets_store.store import StageWriter, Store
 from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
 from ops.engine.early_stop import whole_schedule_record
-from ops.engine.gpu_lease import GpuLease, leased_device
+from ops.engine.gpu_lease import GpuLease, leased_device, memory_hint
 from ops.engine.loop import ProgressEvent, ProgressFn
 from ops.engine.priors import WEIGHT_FREE, PriorSuite
 from ops.engine.stage import StageWork
@@ -265,8 +265,10 @@ class PhotoRun:
         # From the exception itself: a batch reports its photos' failures after leaving the handler.
         log.debug("%s", "".join(traceback.format_exception(exc)))
         self.error = exc
-        self.outcome.error = f"{stage}: {type(exc).__name__}: {exc}"
-        self.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, str(exc)))
+        hint = memory_hint(exc)
+        message = f"{exc} ({hint})" if hint else str(exc)
+        self.outcome.error = f"{stage}: {type(exc).__name__}: {message}"
+        self.outcome.stages.append(StageOutcome(stage, "failed", 0.0, None, message))
 
     def status(self) -> dict[str, str]:
         """Per stage: ``fresh`` (its output matches what this config and the current inputs would
