@@ -121,7 +121,8 @@ def test_running_out_of_memory_names_the_settings_to_lower(tmp_path: Path, monke
 
     monkeypatch.setenv("MORPHEUS_GPUS", "0")
     monkeypatch.setenv("MORPHEUS_LEASE_DIR", str(tmp_path / "leases"))
-    for slots, expected in (("3", "MORPHEUS_GPU_SLOTS=3 runs share each GPU"), ("1", "lower MORPHEUS_BATCH")):
+    for slots, expected in (("3", "MORPHEUS_GPU_SLOTS=3 runs share each GPU"),
+                            ("1", "lower the objects per batch (--batch, MORPHEUS_BATCH)")):
         monkeypatch.setenv("MORPHEUS_GPU_SLOTS", slots)
         with pytest.raises(torch.OutOfMemoryError) as caught, leased_device("cuda"):
             raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 384.00 MiB.")

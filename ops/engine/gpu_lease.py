@@ -1,5 +1,5 @@
 """Crash-safe GPU leases: every run that needs a GPU takes a free slot of one device of the host
-(one slot per GPU unless ``$MORPHEUS_GPU_SLOTS`` says more: a GPU is then exclusive).
+(one slot per GPU by default, so a GPU is exclusive; ``$MORPHEUS_GPU_SLOTS`` gives each more).
 
 Without leases every run asks for ``cuda`` and lands on GPU 0, so a ``gpu`` pool of 8 on an 8-GPU
 host puts eight runs on one device. A lease is an ``fcntl.flock`` on ``gpu-<id>.lock`` in a folder
@@ -218,5 +218,6 @@ def memory_hint(exc: BaseException) -> str | None:
     slots = gpu_slots()
     if slots > 1:
         return (f"{SLOTS_ENV}={slots} runs share each GPU and their memory peaks add up: lower {SLOTS_ENV} "
-                "or MORPHEUS_BATCH (benchmarks/results/gpu_sharing_h200.md lists the peaks)")
-    return "lower MORPHEUS_BATCH (objects per batch) or the preset's sizes"
+                "or the objects per batch (--batch, MORPHEUS_BATCH; benchmarks/results/gpu_sharing_h200.md "
+                "lists the peaks)")
+    return "lower the objects per batch (--batch, MORPHEUS_BATCH) or the preset's sizes"
