@@ -12,7 +12,12 @@ the timed windows of one (share, stage) coincide and nothing else runs on the GP
 aggregate is the object-steps all P processes made per second; minutes per object and objects per
 GPU-hour are extrapolated to the paper's schedule from it, as ``paper_speed.py`` does.
 
+A backfill's runs are rarely in the same stage at once. ``--mix nerf:4 texture:4`` times each
+such process alone, then all together: the share of its alone rate each one keeps, summed, is the
+throughput against running them one after another.
+
     python -m benchmarks.gpu_sharing --device cuda --shares 1x8 2x4 2x8 --seconds 20 --tag h200
+    python -m benchmarks.gpu_sharing --device cuda --shares --mix nerf:4 texture:4 --tag h200_mix  # stages mixed
     python -m benchmarks.gpu_sharing --device cpu --scale tiny --preset draft --shares 1x1 2x1 --seconds 2  # smoke
 """
 
@@ -122,6 +127,32 @@ def _window(rig: Rig, stage: str, batch: int, warmup: int, seconds: float, barri
             torch.cuda.empty_cache()
 
 
+def parse_mix(text: str) -> tuple[str, int]:
+    """``"nerf:4"`` → (stage, objects): one process of a mixed window."""
+    stage, _, batch = text.partition(":")
+    if stage not in STAGES or not batch.isdigit() or int(batch) < 1:
+        raise argparse.ArgumentTypeError(f"a mix entry is STAGE:BATCH with STAGE one of {STAGES}, got {text!r}")
+    return stage, int(batch)
+
+
+Window = tuple[str, list[tuple[int, str, int]]]  # (share name, [(process, stage, batch)])
+
+
+def plan(shares: list[str], stages: list[str], mix: list[str]) -> list[Window]:
+    """Every timed window, the same in every worker: each share at each stage, then (``mix``)
+    each mixed process alone and all of them together."""
+    windows: list[Window] = []
+    for share in shares:
+        procs, batch = parse_share(share)
+        windows += [(share, [(k, stage, batch) for k in range(procs)]) for stage in stages]
+    if mix:
+        parts = [parse_mix(m) for m in mix]
+        name = "+".join(mix)
+        windows += [(f"{name} alone", [(k, stage, batch)]) for k, (stage, batch) in enumerate(parts)]
+        windows.append((f"{name} together", [(k, stage, batch) for k, (stage, batch) in enumerate(parts)]))
+    return windows
+
+
 def worker(args: argparse.Namespace) -> int:
     folder, index = args.sync, args.index
     try:
@@ -131,24 +162,39 @@ def worker(args: argparse.Namespace) -> int:
             measure_stage(rig, needed, 1, 1, 1, False)
         _barrier(folder, "ready", index, args.workers)
         rows: list[dict] = []
-        for share in args.shares:
-            procs, batch = parse_share(share)
-            for stage in args.stages:
-                name = f"{share}-{stage}"
-                if index < procs:
-                    def barrier(phase: str, name: str = name) -> None:
-                        _barrier(folder, f"{name}-{phase}", index, args.workers)
-                    row = _window(rig, stage, batch, args.warmup, args.seconds, barrier)
-                    rows.append({"share": share, "stage": stage, "process": index, "batch": batch, **row})
-                    print(json.dumps(rows[-1]), flush=True)
-                    atomic_write_text(args.result, json.dumps(rows, indent=2) + "\n")  # a killed run keeps these
-                else:  # idle through this window: its priors stay loaded, its GPU work is none
-                    for phase in ("estimate", "start", "end"):
-                        _barrier(folder, f"{name}-{phase}", index, args.workers)
+        for w, (share, assigned) in enumerate(plan(args.shares, args.stages, args.mix)):
+            def barrier(phase: str, w: int = w) -> None:
+                _barrier(folder, f"w{w}-{phase}", index, args.workers)
+            mine = [(stage, batch) for k, stage, batch in assigned if k == index]
+            if mine:
+                stage, batch = mine[0]
+                row = _window(rig, stage, batch, args.warmup, args.seconds, barrier)
+                rows.append({"share": share, "stage": stage, "process": index, "batch": batch, **row})
+                print(json.dumps(rows[-1]), flush=True)
+                atomic_write_text(args.result, json.dumps(rows, indent=2) + "\n")  # a killed run keeps these
+            else:  # idle through this window: its priors stay loaded, its GPU work is none
+                for phase in ("estimate", "start", "end"):
+                    barrier(phase)
         return 0
     except BaseException:
         (folder / "abort").write_text(traceback.format_exc())
         raise
+
+
+def mix_efficiency(rows: list[dict], mix: list[str]) -> dict[str, Any] | None:
+    """How much of its own alone rate each mixed process kept when all ran together; the sum is the
+    GPU's throughput relative to running them one after another (1.0: no gain)."""
+    if not mix:
+        return None
+    name = "+".join(mix)
+    kept = {}
+    for k, (stage, _batch) in enumerate(parse_mix(m) for m in mix):
+        alone = [r for r in rows if r["share"] == f"{name} alone" and r["process"] == k and "error" not in r]
+        together = [r for r in rows if r["share"] == f"{name} together" and r["process"] == k and "error" not in r]
+        if not alone or not together:
+            return {"mix": name, "error": f"process {k} ({stage}) has no alone and together rows"}
+        kept[f"{k}:{stage}"] = round(alone[0]["ms_per_step"] / together[0]["ms_per_step"], 3)
+    return {"mix": name, "kept": kept, "throughput_vs_one_after_another": round(sum(kept.values()), 3)}
 
 
 def aggregate(rows: list[dict], schedule: dict[str, int]) -> tuple[list[dict], list[dict]]:
@@ -208,6 +254,14 @@ def to_markdown(res: dict) -> str:
     for s in res["shares"]:
         lines.append(f"| {s['share']} | {s['gpu_min_per_object']} | **{s['objects_per_gpu_hour']}** | "
                      f"{s['peak_gib']} |")
+    mix = res.get("mix")
+    if mix and "error" not in mix:
+        kept = ", ".join(f"{k} {v:.2f}" for k, v in mix["kept"].items())
+        lines += ["", f"Mixed stages `{mix['mix']}`: each process kept this share of its own alone rate when all "
+                  f"ran together: {kept}; sum **{mix['throughput_vs_one_after_another']:.2f}×** the throughput of "
+                  "running them one after another."]
+    elif mix:
+        lines += ["", f"Mixed stages `{mix['mix']}`: {mix['error']}"]
     if res.get("errors"):
         lines += ["", "Errors: " + "; ".join(res["errors"])]
     return "\n".join(lines) + "\n"
@@ -218,7 +272,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cuda")
     p.add_argument("--preset", default="paper")
     p.add_argument("--scale", default="full", choices=["full", "tiny"])
-    p.add_argument("--shares", nargs="+", default=["1x8", "2x4", "2x8"], help="PROCESSESxBATCH, the first is the base")
+    p.add_argument("--shares", nargs="*", default=["1x8", "2x4", "2x8"], help="PROCESSESxBATCH, the first is the base")
+    p.add_argument("--mix", nargs="*", default=[], metavar="STAGE:BATCH",
+                   help="processes in different stages: each timed alone, then all together")
     p.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     p.add_argument("--seconds", type=float, default=20.0)
     p.add_argument("--warmup", type=int, default=3)
@@ -234,14 +290,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sync", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--result", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    for share in args.shares:
-        parse_share(share)
+    windows = plan(args.shares, args.stages, args.mix)  # bad shares or mix entries fail here, before any worker
     if args.worker:
         return worker(args)
 
     t_start = time.perf_counter()
     prepare_references(args.store, preset(args.preset, ["device=cpu"]))  # once, before the workers read them
-    workers = max(parse_share(s)[0] for s in args.shares)
+    workers = max(len(assigned) for _, assigned in windows)
     sync = Path(tempfile.mkdtemp(prefix="gpu_sharing_sync_"))
     passed = list(argv if argv is not None else sys.argv[1:])
     procs = [subprocess.Popen([sys.executable, "-m", "benchmarks.gpu_sharing", *passed, "--worker",
@@ -273,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
         else platform.processor() or platform.machine()
     res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
            "preset": args.preset, "scale": args.scale, "warmup": args.warmup, "seconds": args.seconds,
-           "schedule": schedule, "rows": rows, "stages": stages, "shares": shares, "errors": errors,
+           "schedule": schedule, "rows": rows, "stages": stages, "shares": shares,
+           "mix": mix_efficiency(rows, args.mix), "errors": errors,
            "wall_s": round(time.perf_counter() - t_start, 1),
            "command": "python -m benchmarks.gpu_sharing " + " ".join(passed)}
     args.out.mkdir(parents=True, exist_ok=True)

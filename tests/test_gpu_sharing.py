@@ -8,7 +8,7 @@ import random
 
 import pytest
 
-from benchmarks.gpu_sharing import aggregate, parse_share, to_markdown
+from benchmarks.gpu_sharing import aggregate, mix_efficiency, parse_mix, parse_share, plan, to_markdown
 
 SCHEDULE = {"nerf": 10_000, "dmtet": 5_000, "texture": 5_000}
 
@@ -57,3 +57,26 @@ def test_a_failed_window_is_reported_not_extrapolated() -> None:
                       "warmup": 3, "seconds": 12, "command": "c", "schedule": SCHEDULE, "stages": stages,
                       "shares": shares})
     assert "| 2x8 | nerf | error: OutOfMemoryError" in md and "| 1x8 | nerf |" in md
+
+
+def test_the_plan_times_every_share_at_every_stage_then_the_mix_alone_and_together() -> None:
+    windows = plan(["1x8", "3x4"], ["nerf", "texture"], ["nerf:4", "texture:2"])
+    assert [name for name, _ in windows] == ["1x8", "1x8", "3x4", "3x4", "nerf:4+texture:2 alone",
+                                              "nerf:4+texture:2 alone", "nerf:4+texture:2 together"]
+    assert windows[2][1] == [(0, "nerf", 4), (1, "nerf", 4), (2, "nerf", 4)]
+    assert windows[5][1] == [(1, "texture", 2)] and windows[6][1] == [(0, "nerf", 4), (1, "texture", 2)]
+    for bad in ("nerf", "bake:2", "texture:0"):
+        with pytest.raises(argparse.ArgumentTypeError, match="STAGE:BATCH"):
+            parse_mix(bad)
+
+
+def test_mixed_stages_report_the_share_of_their_alone_rate_each_kept() -> None:
+    mix = ["nerf:4", "texture:4"]
+    alone = {"nerf": random.uniform(300, 500), "texture": random.uniform(400, 800)}
+    slow = {"nerf": random.uniform(1.1, 2.5), "texture": random.uniform(1.1, 2.5)}
+    rows = [_row("nerf:4+texture:4 alone", s, k, 4, alone[s]) for k, s in enumerate(alone)]
+    rows += [_row("nerf:4+texture:4 together", s, k, 4, alone[s] * slow[s]) for k, s in enumerate(alone)]
+    eff = mix_efficiency(rows, mix)
+    assert eff["kept"]["0:nerf"] == pytest.approx(1 / slow["nerf"], abs=2e-3)
+    assert eff["throughput_vs_one_after_another"] == pytest.approx(1 / slow["nerf"] + 1 / slow["texture"], abs=4e-3)
+    assert "error" in mix_efficiency(rows[:3], mix) and mix_efficiency(rows, []) is None
