@@ -68,6 +68,14 @@ def doctor() -> int:
         print(f"  CUDA available: yes ({torch.version.cuda}; {names})")
     else:
         print(f"  CUDA available: no (CPU only; torch {torch.__version__}, {torch.get_num_threads()} threads)")
+    from ops.engine.gpu_lease import GPUS_ENV, SLOTS_ENV, GpuLeaseError, LeaseSettings, gpu_count, gpu_slots
+
+    try:
+        leases = f"{gpu_count()} GPU(s) × {gpu_slots()} run(s) each ({GPUS_ENV}, {SLOTS_ENV}; locks in " \
+                 f"{LeaseSettings().folder})"
+    except GpuLeaseError as exc:
+        ok, leases = False, f"bad setting: {exc}"
+    print(f"  GPU leases: {leases}")
     contrib, detail = cv2_status()
     ok &= contrib
     print(f"  OpenCV: {detail}")

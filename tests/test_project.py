@@ -43,6 +43,11 @@ def test_doctor_reports_packages_cuda_cv2_and_models(tmp_path: Path, monkeypatch
     assert "controlnet_canny   present" in out
     assert "zero123            missing" in out and "expected file: unet/config.json" in out
     assert "3d prior weights missing" in out and "2d prior weights missing" in out
+    monkeypatch.setenv("MORPHEUS_GPUS", "0,1")
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "3")
+    assert main(["doctor"]) == 0 and "GPU leases: 2 GPU(s) × 3 run(s) each" in capsys.readouterr().out
+    monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "lots")
+    assert main(["doctor"]) == 1 and "GPU leases: bad setting: MORPHEUS_GPU_SLOTS='lots'" in capsys.readouterr().out
 
 
 def test_model_check_names_missing_files(tmp_path: Path) -> None:
