@@ -85,9 +85,10 @@ def _timed(task: Any, steps: int, gen: torch.Generator, dev: torch.device) -> fl
 
 
 def _window(rig: Rig, stage: str, batch: int, warmup: int, seconds: float, barrier: Any) -> dict[str, Any]:
-    """Set up ``batch`` objects of ``stage``, warm up, then step for ``seconds`` between two barriers.
-    A failure (out of memory at a large share) is the row's ``error``; the barriers are still met,
-    so the other processes' windows go on."""
+    """Set up ``batch`` objects of ``stage`` and warm up; at the barriers ``estimate``, ``start`` and
+    ``end`` every process estimates its step time, then steps for about ``seconds``. A failure (out
+    of memory at a large share) is the row's ``error``; the barriers are still met, so the other
+    processes' windows go on."""
     dev = rig.dev
     phases = ["estimate", "start", "end"]
     jobs: list[Any] = []
