@@ -40,7 +40,7 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write_text
-from benchmarks.paper_speed import STAGES, Rig, build_rig, measure_stage, prepare_references
+from benchmarks.paper_speed import STAGES, Rig, build_rig, measure_stage, prepare_references, sync_device
 from ops.config.presets import preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import LoopConfig, run_loop
@@ -70,15 +70,10 @@ def _barrier(folder: Path, name: str, index: int, workers: int, timeout_s: float
         time.sleep(0.01)
 
 
-def _sync(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
-
-
 def _timed(task: Any, steps: int, gen: torch.Generator, dev: torch.device) -> float:
     start = time.perf_counter()
     res = run_loop(task, LoopConfig(steps, log_every=10**9), gen, "shared")
-    _sync(dev)
+    sync_device(dev)
     if res.guards.skipped:
         raise FloatingPointError(f"timed steps were skipped: {res.guards.as_dict()}")
     return time.perf_counter() - start
@@ -99,7 +94,7 @@ def _window(rig: Rig, stage: str, batch: int, warmup: int, seconds: float, barri
         task = jobs[0].task if batch == 1 else BatchTask([j.task for j in jobs], [j.generator for j in jobs])
         gen = torch.Generator().manual_seed(0)
         run_loop(task, LoopConfig(warmup, log_every=10**9), gen, "warmup")
-        _sync(dev)
+        sync_device(dev)
         if dev.type == "cuda":
             torch.cuda.reset_peak_memory_stats(dev)
         barrier(phases.pop(0))

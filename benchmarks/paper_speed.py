@@ -59,7 +59,7 @@ PAPER_MIN = {"nerf": 26.0, "dmtet": 14.0, "texture": 72.0}
 MODES = {"before": {"accel": "eager", "compile": "0"}, "after": {"accel": "cudagraph", "compile": "1"}}
 
 
-def _sync(dev: torch.device) -> None:
+def sync_device(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
 
@@ -127,14 +127,14 @@ def build_rig(device: str, mode: str, preset_name: str, scale: str, overrides: l
 def _timed_loop(task: Any, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
     t0 = time.perf_counter()
     run_loop(task, LoopConfig(warmup, log_every=10**9), gen, "warmup")
-    _sync(dev)
+    sync_device(dev)
     warm_s = time.perf_counter() - t0
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     captures = GraphedCall.captures
     start = time.perf_counter()
     res = run_loop(task, LoopConfig(steps, log_every=10**9), gen, "timed")
-    _sync(dev)
+    sync_device(dev)
     ms = (time.perf_counter() - start) * 1000 / steps  # the mean: it includes the occupancy refreshes
     if res.guards.skipped:
         raise FloatingPointError(f"{res.guards.skipped} timed steps were skipped: {res.guards.as_dict()}")
@@ -153,7 +153,7 @@ def _profile(task: Any, dev: torch.device, gen: torch.Generator, rows: int = 25)
     with profile(activities=acts) as prof:
         start = time.perf_counter()
         run_loop(task, LoopConfig(3, log_every=10**9), gen, "profile")
-        _sync(dev)
+        sync_device(dev)
         wall_ms = (time.perf_counter() - start) * 1000
     key = "self_cuda_time_total" if dev.type == "cuda" else "self_cpu_time_total"
     # Wall time next to the CUDA total says whether the steps were bound by the GPU or by the host.
