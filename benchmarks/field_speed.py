@@ -4,7 +4,10 @@ Measures (forward + backward, median of repeats):
 - the paper's hash grid (16 levels × 2 features, table 2^19) encoding 2^18 points, eager and,
   on CUDA, under ``torch.compile``;
 - a volume render of a 128² image at 256 samples per ray of the paper-size NeRF (blob init),
-  with and without the occupancy grid and the central-difference normals.
+  with and without the occupancy grid and the central-difference normals;
+- the field's two MLP heads (32 → 64 → 64 → 1 and → 3) on 2^22 rows, forward + backward, as
+  ``nn.Sequential`` modules and, on CUDA, as the fused kernels (``MORPHEUS_FIELD_MLP``), with fp32
+  matmuls full precision and TF32; and the volume render with either.
 
     python benchmarks/field_speed.py --tag cpu            # writes benchmarks/results/field_speed_cpu.{json,md}
     python benchmarks/field_speed.py --tag h200 --device cuda
@@ -13,17 +16,21 @@ Measures (forward + backward, median of repeats):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
+import os
 import platform
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
 
 from morpheus_core.cameras import sample_orbit
+from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
+from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
@@ -66,6 +73,37 @@ def bench_hashgrid(device: torch.device, repeats: int, compiled: bool) -> dict[s
     return timed(step, device, repeats, warmup=3 if compiled else 1)
 
 
+@contextlib.contextmanager
+def settings(heads: str, tf32: bool) -> Iterator[None]:
+    """``MORPHEUS_FIELD_MLP`` and PyTorch's TF32 switch for fp32 matmuls, restored afterwards."""
+    old_env, old_tf32 = os.environ.get(HEADS_ENV), torch.backends.cuda.matmul.allow_tf32
+    os.environ[HEADS_ENV] = heads
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = old_tf32
+        if old_env is None:
+            os.environ.pop(HEADS_ENV, None)
+        else:
+            os.environ[HEADS_ENV] = old_env
+
+
+def bench_heads(device: torch.device, repeats: int, rows: int, heads: str, tf32: bool) -> dict[str, float]:
+    field = NerfField(NerfConfig(), generator=torch.Generator().manual_seed(6)).to(device)
+    feats = torch.randn(rows, field.encoding.output_dim, generator=torch.Generator().manual_seed(7)).to(device)
+    feats.requires_grad_()
+
+    def step() -> None:
+        field.zero_grad(set_to_none=True)
+        feats.grad = None
+        density, albedo = evaluate_heads(feats, field.density_mlp, field.albedo_mlp)
+        (density.square().mean() + albedo.square().mean()).backward()
+
+    with settings(heads, tf32):
+        return timed(step, device, repeats, warmup=2)
+
+
 def bench_volume(
     device: torch.device, repeats: int, occupancy: bool, normals: bool, size: int = 128, samples: int = 256
 ) -> dict[str, float]:
@@ -83,7 +121,7 @@ def bench_volume(
         out = render_volume(field, cams, size, size, config, occupancy=grid, generator=gen)
         (out.rgb.mean() + out.opacity.mean()).backward()
 
-    row = timed(step, device, repeats, warmup=1)
+    row = timed(step, device, repeats, warmup=2)
     if grid is not None:
         row["occupied_fraction"] = grid.occupied_fraction
     return row
@@ -117,6 +155,18 @@ def main() -> None:
         name = "volume 128² × 256 spp fwd+bwd, " + ("occupancy grid" if occupancy else "no skipping")
         name += ", normals" if normals else ", no normals"
         record(name, lambda o=occupancy, n=normals: bench_volume(device, vol_repeats, occupancy=o, normals=n))
+    choices = [("eager", False), ("eager", True)] + ([("triton", False), ("triton", True)] if cuda else [])
+    head_rows = 1 << (22 if cuda else 16)
+    for heads, tf32 in choices:
+        label = f"{'fused kernels' if heads == 'triton' else 'modules'}, {'TF32' if tf32 else 'fp32'} matmuls"
+        record(f"field heads 2^{head_rows.bit_length() - 1} rows fwd+bwd ({label})",
+               lambda h=heads, t=tf32: bench_heads(device, repeats, head_rows, h, t))
+        if cuda:
+            def volume(h: str = heads, t: bool = tf32) -> dict[str, float]:
+                with settings(h, t):
+                    return bench_volume(device, vol_repeats, occupancy=True, normals=False)
+
+            record(f"volume 128² × 256 spp fwd+bwd, occupancy grid, no normals ({label})", volume)
 
     meta = {
         "date": dt.datetime.now().isoformat(timespec="seconds"),

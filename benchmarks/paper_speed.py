@@ -38,6 +38,7 @@ from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from morpheus_core.cuda_graphs import GraphedCall
+from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
 from morpheus_core.geometry.hashgrid import BACKEND_ENV
 from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
@@ -110,15 +111,15 @@ class Rig:
 
 
 def build_rig(device: str, mode: str, preset_name: str, scale: str, overrides: list[str], store: Path,
-              work: Path) -> Rig:
+              work: Path, tf32: bool = True) -> Rig:
     """The mode's settings (``MODES``) applied to this process, the example references prepared in
     ``store`` and the priors built: what every timed row starts from."""
     os.environ["MORPHEUS_COMPILE"] = MODES[mode]["compile"]
     dev = torch.device(device)
     accel = MODES[mode]["accel"] if dev.type == "cuda" else "eager"
     cfg = preset(preset_name, [f"device={device}", "priors.kind=real", f"priors.accel={accel}", *overrides])
-    if dev.type == "cuda":
-        torch.backends.cuda.matmul.allow_tf32 = True
+    if dev.type == "cuda":  # TF32 as in every earlier speed result; the pipeline itself keeps fp32 matmuls
+        torch.backends.cuda.matmul.allow_tf32 = tf32
         torch.backends.cudnn.allow_tf32 = True
     refs = prepare_references(store, preset(preset_name, ["device=cpu"]))
     return Rig(cfg, dev, refs, scale, work)
@@ -253,7 +254,8 @@ def to_markdown(res: dict) -> str:
     lines = [f"# Paper schedule speed, mode `{res['mode']}` — {res['device']}, {res['date']}", "",
              f"torch {res['torch']}; full-size prior architectures with random weights ({res['scale']}); "
              f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}, hash-grid kernels "
-             f"`{res.get('hashgrid', 'auto')}` ({BACKEND_ENV}); "
+             f"`{res.get('hashgrid', 'auto')}` ({BACKEND_ENV}), field heads `{res.get('field_mlp', 'eager')}` "
+             f"({HEADS_ENV}), fp32 matmuls {'in TF32' if res.get('tf32', True) else 'at full precision'}; "
              f"{res['warmup']} warm-up + {res['steps']} timed steps per row (mean); schedule "
              f"{sched['nerf']} + {sched['dmtet']} + {sched['texture']} steps. "
              f"Command: `{res['command']}`.", "",
@@ -307,12 +309,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--store", type=Path, default=ROOT / "outputs" / "gpu_refs", help="where references are prepared")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     p.add_argument("--tag", default="cpu")
+    p.add_argument("--fp32-matmul", action="store_true",
+                   help="keep fp32 matmuls at full precision, as the pipeline does (default: TF32, as earlier results)")
     args = p.parse_args(argv)
 
     mode = MODES[args.mode]
     work = Path(tempfile.mkdtemp(prefix="paper_speed_"))
     t_start = time.perf_counter()
-    rig = build_rig(args.device, args.mode, args.preset, args.scale, args.overrides, args.store, work)
+    rig = build_rig(args.device, args.mode, args.preset, args.scale, args.overrides, args.store, work,
+                    tf32=not args.fp32_matmul)
     cfg, dev, accel = rig.cfg, rig.dev, rig.cfg.priors.accel
     rows: list[dict] = []
     profiles: list[str] = []
@@ -327,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
                "mode": args.mode, "accel": accel, "peak": "reserved",
                "compiled": dev.type == "cuda" and mode["compile"] == "1",
                "hashgrid": os.environ.get(BACKEND_ENV) or "auto",
+               "field_mlp": os.environ.get(HEADS_ENV) or "auto", "tf32": not args.fp32_matmul,
                "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
                "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
                "wall_s": round(time.perf_counter() - t_start, 1),

@@ -24,7 +24,6 @@ would change the config hashes of existing stores.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -33,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.devices import compiled_for
+from morpheus_core.triton_support import choose
 
 PRIMES = (1, 2654435761, 805459861)
 _INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation
@@ -194,31 +194,17 @@ def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask:
 
 
 BACKEND_ENV = "MORPHEUS_HASHGRID"
-_BACKENDS = ("auto", "triton", "eager")
 
 
 def _triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
-    """The Triton kernel module when this encode should use it (see the module docstring), else None.
+    """The Triton kernel module when this encode should use it (``triton_support.choose``), else None."""
 
-    The CPU under ``auto`` and ``eager`` never imports it (nor Triton): its path stays the eager code.
-    """
-    choice = os.environ.get(BACKEND_ENV) or "auto"
-    if choice not in _BACKENDS:
-        raise ValueError(f"{BACKEND_ENV} must be one of {', '.join(_BACKENDS)}; got {choice!r}")
-    if choice == "eager" or (choice == "auto" and x.device.type != "cuda"):
-        return None
-    from morpheus_core.geometry import hashgrid_triton
+    def load() -> ModuleType:
+        from morpheus_core.geometry import hashgrid_triton
 
-    if not hashgrid_triton.supports(x, table):
-        return None  # float64 (gradcheck) or an unsupported width: the tensor code, under either choice
-    if hashgrid_triton.triton_available() and (x.device.type == "cuda" or hashgrid_triton.interpreting()):
         return hashgrid_triton
-    if choice == "triton":
-        reason = "triton is not installed" if hashgrid_triton.triton is None else (
-            f"Triton needs a CUDA device (or TRITON_INTERPRET=1 for its CPU interpreter), got {x.device}")
-        raise RuntimeError(f"{BACKEND_ENV}=triton but the Triton hash-grid kernels cannot run here: {reason}; "
-                           f"set {BACKEND_ENV}=auto or eager")
-    return None
+
+    return choose(BACKEND_ENV, x.device, lambda: load().supports(x, table), load, "hash-grid")
 
 
 class _HashEncode(torch.autograd.Function):

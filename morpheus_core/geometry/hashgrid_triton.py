@@ -25,26 +25,15 @@ tests set ``TRITON_INTERPRET=1`` before importing it.
 
 from __future__ import annotations
 
-import contextlib
-import os
 import weakref
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
-try:
-    import triton
-    import triton.language as tl
+from morpheus_core.triton_support import device_guard, load_triton
 
-    _jit: Any = triton.jit
-except ImportError:  # CPU installs without Triton: triton_available() is False, nothing is launched
-    triton = None
-    tl = None
-
-    def _jit(fn: Any) -> Any:
-        return fn
-
+triton, tl, _jit = load_triton()
 
 if TYPE_CHECKING:
     from morpheus_core.geometry.hashgrid import _LevelTables
@@ -53,16 +42,6 @@ _BLOCK = 128  # points per program: 4 warps of 32 threads, one point per thread
 _NUM_WARPS = 4
 SUPPORTED_FEATURES = (1, 2, 4, 8)
 SUPPORTED_TABLE_DTYPES = (torch.float32, torch.float16, torch.bfloat16)
-
-
-def interpreting() -> bool:
-    """Whether Triton runs its CPU interpreter (``TRITON_INTERPRET=1``) instead of compiling."""
-    return os.environ.get("TRITON_INTERPRET", "0") == "1"
-
-
-def triton_available() -> bool:
-    """Triton imports and can run here: a CUDA device is present, or the interpreter is on."""
-    return triton is not None and (torch.cuda.is_available() or interpreting())
 
 
 def supports(x: Tensor, table: Tensor) -> bool:
@@ -326,10 +305,6 @@ def _launch_options() -> dict[str, Any]:
     return {"num_warps": _NUM_WARPS, "enable_fp_fusion": False}
 
 
-def _device_guard(x: Tensor) -> Any:
-    return torch.cuda.device(x.device) if x.device.type == "cuda" else contextlib.nullcontext()
-
-
 def _row_bases(x: Tensor, base: Tensor | None) -> Tensor:
     """The kernels' base pointer: the points' first table rows (``hashgrid.encode_stacked``), or any
     int64 tensor when there is none (the STACKED flag then drops the load)."""
@@ -353,7 +328,7 @@ def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: T
     if n == 0:
         return out
     grid = (triton.cdiv(n, _BLOCK), consts.n_levels)
-    with _device_guard(x):
+    with device_guard(x):
         _forward_kernel[grid](x, bases, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
                               n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
                               STACKED=base is not None, **_launch_options())
@@ -383,7 +358,7 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
         # Unwanted outputs: any valid pointer of the right dtype (the constexpr flags drop their code).
         gt = grad_table if grad_table is not None else x
         gx = grad_x if grad_x is not None else x
-        with _device_guard(x):
+        with device_guard(x):
             _backward_kernel[grid](x, bases, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows,
                                    consts.offsets, mask, n, consts.n_levels, consts.n_dense, F=n_features,
                                    BLOCK=_BLOCK, WANT_X=bool(want_x), WANT_TABLE=bool(want_table),

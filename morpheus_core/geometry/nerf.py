@@ -15,6 +15,7 @@ from typing import Protocol
 import torch
 from torch import Tensor, nn
 
+from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 from morpheus_core.geometry.mesh import safe_normalize
 
@@ -138,14 +139,13 @@ class NerfField(nn.Module):
         return cfg.blob_density * (1 - radius / cfg.blob_radius)
 
     def density(self, points: Tensor) -> Tensor:
-        raw = self.density_mlp(self._features(points)).squeeze(-1)
-        return trunc_exp(raw.float() + self._blob(points).float())
+        raw, _ = evaluate_heads(self._features(points), self.density_mlp, None)
+        return trunc_exp(raw.squeeze(-1).float() + self._blob(points).float())
 
     def query(self, points: Tensor, with_normals: bool = False) -> FieldSample:
-        feats = self._features(points)
-        raw = self.density_mlp(feats).squeeze(-1)
-        density = trunc_exp(raw.float() + self._blob(points).float())
-        albedo = torch.sigmoid(self.albedo_mlp(feats).float())
+        raw, raw_albedo = evaluate_heads(self._features(points), self.density_mlp, self.albedo_mlp)
+        density = trunc_exp(raw.squeeze(-1).float() + self._blob(points).float())
+        albedo = torch.sigmoid(raw_albedo.float())  # type: ignore[union-attr]
         normal = central_difference_normals(self.density, points, self.config.normal_eps) if with_normals else None
         return FieldSample(density, albedo, normal)
 

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import encode_stacked
 from morpheus_core.geometry.nerf import FieldSample, NerfField, central_difference_normals, trunc_exp
 
@@ -35,32 +36,35 @@ class FieldStack:
     def __len__(self) -> int:
         return len(self.fields)
 
-    def _heads(self, feats: Tensor, counts: Sequence[int], head: str) -> Tensor:
+    def _heads(self, feats: Tensor, counts: Sequence[int], with_albedo: bool) -> tuple[Tensor, Tensor | None]:
+        """Each object's raw density (and albedo) from its own heads, concatenated in point order."""
         parts = [(f, x) for f, x in zip(self.fields, feats.split(list(counts)), strict=True) if len(x)]
-        if not parts:  # no points at all: the first field's head on the empty input, for the shape
-            return getattr(self.fields[0], head)(feats)
-        return torch.cat([getattr(f, head)(x) for f, x in parts])
+        if not parts:  # no points at all: the first field's heads on the empty input, for the shapes
+            parts = [(self.fields[0], feats)]
+        outs = [evaluate_heads(x, f.density_mlp, f.albedo_mlp if with_albedo else None) for f, x in parts]
+        density = torch.cat([d for d, _ in outs])
+        return density, (torch.cat([a for _, a in outs]) if with_albedo else None)  # type: ignore[misc]
 
     def _features(self, points: Tensor, obj: Tensor) -> Tensor:
         return encode_stacked([f.encoding for f in self.fields], (points / self.bbox_radius + 1) * 0.5, obj)
 
-    def _density(self, points: Tensor, feats: Tensor, counts: Sequence[int]) -> Tensor:
-        raw = self._heads(feats, counts, "density_mlp").squeeze(-1)
-        return trunc_exp(raw.float() + self.fields[0]._blob(points).float())
+    def _density(self, points: Tensor, raw: Tensor) -> Tensor:
+        return trunc_exp(raw.squeeze(-1).float() + self.fields[0]._blob(points).float())
 
     def density(self, points: Tensor, obj: Tensor, counts: Sequence[int]) -> Tensor:
         """(N,) densities at ``points`` (N, 3): the first ``counts[0]`` points are object 0's, and so on;
         ``obj`` (N,) holds each point's object index (the same information, on the device). Objects
         with no points here cost nothing."""
         self._check(points, obj, counts)
-        return self._density(points, self._features(points, obj), counts)
+        raw, _ = self._heads(self._features(points, obj), counts, False)
+        return self._density(points, raw)
 
     def query(self, points: Tensor, obj: Tensor, counts: Sequence[int], with_normals: bool = False) -> FieldSample:
         """``NerfField.query`` of each point's own field (points sorted by object, as ``density``)."""
         self._check(points, obj, counts)
-        feats = self._features(points, obj)
-        density = self._density(points, feats, counts)
-        albedo = torch.sigmoid(self._heads(feats, counts, "albedo_mlp").float())
+        raw, raw_albedo = self._heads(self._features(points, obj), counts, True)
+        density = self._density(points, raw)
+        albedo = torch.sigmoid(raw_albedo.float())  # type: ignore[union-attr]
         normal = None
         if with_normals:  # six probes per point, each under its point's object
             probe_obj = obj.repeat_interleave(6)

@@ -1,0 +1,199 @@
+"""Fused field-head kernels (``mlp_triton``) against the ``nn.Sequential`` heads they replace.
+
+Without CUDA the kernels run under Triton's CPU interpreter (set before ``mlp_triton`` is
+imported, as in ``test_hashgrid_triton``); with CUDA the same tests run the compiled kernels, whose
+tensor-core products (``tf32x3``) are compared with a looser tolerance.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+from torch import nn
+
+from morpheus_core.geometry.field_heads import BACKEND_ENV, evaluate_heads, head_parameters
+from morpheus_core.geometry.hashgrid import HashGridConfig
+from morpheus_core.geometry.nerf import NerfConfig, NerfField, _mlp
+from morpheus_core.geometry.nerf_stack import FieldStack
+
+CUDA = torch.cuda.is_available()
+if not CUDA:
+    os.environ["TRITON_INTERPRET"] = "1"
+pytest.importorskip("triton")
+
+from morpheus_core.geometry import mlp_triton  # noqa: E402  (after TRITON_INTERPRET)
+
+DEVICE = torch.device("cuda" if CUDA else "cpu")
+REL = 2e-4 if CUDA else 2e-6
+
+
+def heads(n_in: int, hidden: int, n_out: int, seed: int) -> tuple[nn.Sequential, nn.Sequential]:
+    torch.manual_seed(seed)
+    return _mlp(n_in, hidden, 2, 1).to(DEVICE), _mlp(n_in, hidden, 2, n_out).to(DEVICE)
+
+
+def assert_near(got: torch.Tensor | None, want: torch.Tensor | None, rel: float = REL) -> None:
+    assert got is not None and want is not None
+    got, want = got.detach(), want.detach()
+    assert got.shape == want.shape and got.dtype == want.dtype
+    err = float((got.double() - want.double()).abs().max()) if got.numel() else 0.0
+    scale = max(1.0, float(want.abs().max())) if want.numel() else 1.0
+    assert err <= rel * scale, f"max abs error {err:.3g} > {rel:g} × {scale:.3g}"
+
+
+@pytest.mark.parametrize(("n", "n_in", "hidden", "n_out"),
+                         [(300, 32, 64, 3), (129, 12, 20, 3), (70, 32, 64, 1), (1, 5, 17, 16), (0, 32, 64, 3)])
+def test_kernels_match_the_modules(n: int, n_in: int, hidden: int, n_out: int) -> None:
+    """Odd widths (padded, masked), a row count off the block size, one row, no rows."""
+    density, albedo = heads(n_in, hidden, n_out, seed=n + n_in)
+    g = torch.Generator().manual_seed(n)
+    x = (torch.randn(n, n_in, generator=g) * 2).to(DEVICE).requires_grad_()
+    ref_d, ref_a = density(x), albedo(x)
+    grad_d = torch.randn(ref_d.shape, generator=g).to(DEVICE)
+    grad_a = torch.randn(ref_a.shape, generator=g).to(DEVICE)
+    torch.autograd.backward([ref_d, ref_a], [grad_d, grad_a])
+    pd, pa = head_parameters(density), head_parameters(albedo)
+    out_d, out_a = mlp_triton.heads_forward(x.detach(), pd, pa)
+    assert_near(out_d, ref_d.detach())
+    assert_near(out_a, ref_a.detach())
+    grad_x, grads_d, grads_a = mlp_triton.heads_backward(x.detach(), pd, pa, grad_d, grad_a, True)
+    assert_near(grad_x, x.grad)
+    for got, p in zip([*grads_d, *grads_a], [*pd, *pa], strict=True):
+        assert_near(got, p.grad)
+    if n:
+        assert float(grad_x.abs().sum()) > 0 and all(float(p.grad.abs().sum()) > 0 for p in pd[:2])
+
+
+def test_gradients_match_finite_differences() -> None:
+    """Float64 central differences of the kernels' own forward (interpreter fp32, so a loose tolerance)."""
+    density, albedo = heads(8, 16, 3, seed=3)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(40, 8, generator=g).to(DEVICE)
+    grad_a = torch.randn(40, 3, generator=g).to(DEVICE)
+    pd, pa = head_parameters(density), head_parameters(albedo)
+    _, _, grads_a = mlp_triton.heads_backward(x, pd, pa, None, grad_a, False)
+    w2 = pa[2]
+    eps = 1e-2
+    for idx in [(0, 0), (3, 7), (15, 15)]:
+        with torch.no_grad():
+            old = float(w2[idx])
+            w2[idx] = old + eps
+            up = float((mlp_triton.heads_forward(x, pd, pa)[1] * grad_a).double().sum())
+            w2[idx] = old - eps
+            down = float((mlp_triton.heads_forward(x, pd, pa)[1] * grad_a).double().sum())
+            w2[idx] = old
+        assert abs((up - down) / (2 * eps) - float(grads_a[2][idx])) < 2e-2 * max(1.0, abs(float(grads_a[2][idx])))
+
+
+def test_backward_is_deterministic_and_skips_unused_heads() -> None:
+    density, albedo = heads(32, 64, 3, seed=5)
+    g = torch.Generator().manual_seed(6)
+    x = torch.randn(500, 32, generator=g).to(DEVICE)
+    grad_d = torch.randn(500, 1, generator=g).to(DEVICE)
+    pd, pa = head_parameters(density), head_parameters(albedo)
+    first = mlp_triton.heads_backward(x, pd, pa, grad_d, None, True)
+    second = mlp_triton.heads_backward(x, pd, pa, grad_d, None, True)
+    assert first[2] is None and second[2] is None  # no albedo gradient: that head is not run
+    assert torch.equal(first[0], second[0])
+    assert all(torch.equal(a, b) for a, b in zip(first[1], second[1], strict=True))
+    none = mlp_triton.heads_backward(x, pd, pa, None, None, True)
+    assert none == (None, None, None)
+    with pytest.raises(ValueError, match="albedo gradient without an albedo head"):
+        mlp_triton.heads_backward(x, pd, None, grad_d, torch.ones(500, 3, device=DEVICE), True)
+
+
+def test_unsupported_inputs() -> None:
+    density, albedo = heads(32, 64, 3, seed=7)
+    x = torch.randn(10, 32, device=DEVICE)
+    pd, pa = head_parameters(density), head_parameters(albedo)
+    assert mlp_triton.supports(x, [pd, pa])
+    assert not mlp_triton.supports(x.double(), [pd, pa])
+    assert not mlp_triton.supports(torch.randn(10, 200, device=DEVICE), [pd])
+    _, wide_out = heads(32, 64, 17, seed=8)
+    assert not mlp_triton.supports(x, [pd, head_parameters(wide_out)])
+    _, other_width = heads(32, 48, 3, seed=9)
+    assert not mlp_triton.supports(x, [pd, head_parameters(other_width)])  # the heads share one width
+    assert head_parameters(_mlp(32, 64, 1, 1)) is None  # one hidden layer: the modules run it
+    with pytest.raises(ValueError, match="fused field heads take fp32"):
+        mlp_triton.heads_forward(x.double(), pd, pa)
+
+
+def small_field(seed: int) -> NerfField:
+    cfg = NerfConfig(grid=HashGridConfig(n_levels=4, log2_table_size=10, base_resolution=4, per_level_scale=1.5),
+                     hidden=32)
+    return NerfField(cfg, generator=torch.Generator().manual_seed(seed)).to(DEVICE)
+
+
+def field_grads(field: NerfField, points: torch.Tensor, monkeypatch: pytest.MonkeyPatch, choice: str,
+                albedo_only: bool = False) -> tuple[list[torch.Tensor], dict[str, torch.Tensor | None]]:
+    monkeypatch.setenv(BACKEND_ENV, choice)
+    field.zero_grad(set_to_none=True)
+    sample = field.query(points)
+    loss = (sample.albedo * torch.linspace(-1, 1, 3, device=DEVICE)).sum()
+    if not albedo_only:
+        loss = loss + (sample.density.log1p() * points[:, 0]).sum() + field.density(points * 0.5).sum()
+    loss.backward()
+    return [sample.density.detach(), sample.albedo.detach()], {n: p.grad for n, p in field.named_parameters()}
+
+
+@pytest.mark.parametrize("albedo_only", [False, True])
+def test_field_query_and_gradients_match_eager(monkeypatch: pytest.MonkeyPatch, albedo_only: bool) -> None:
+    """Through ``NerfField``: the hash table's gradient passes the kernels' feature gradient on."""
+    field = small_field(10)
+    points = (torch.rand(257, 3, generator=torch.Generator().manual_seed(11)) * 1.6 - 0.8).to(DEVICE)
+    want_out, want_grads = field_grads(field, points, monkeypatch, "eager", albedo_only)
+    launches = []
+    backward = mlp_triton.heads_backward
+    monkeypatch.setattr(mlp_triton, "heads_backward",
+                        lambda *a: launches.append((a[3] is not None, a[4] is not None)) or backward(*a))
+    got_out, got_grads = field_grads(field, points, monkeypatch, "triton", albedo_only)
+    # The kernels ran, in reverse order of the forward: (density wanted, albedo wanted) per call.
+    assert launches == ([(False, True)] if albedo_only else [(True, False), (True, True)])
+    for got, want in zip(got_out, want_out, strict=True):
+        assert_near(got, want, 1e-4 if CUDA else 1e-5)
+    assert got_grads.keys() == want_grads.keys()
+    for name, want in want_grads.items():
+        if want is None:  # the density head under an albedo-only loss
+            assert got_grads[name] is None, name
+        else:
+            assert_near(got_grads[name], want, 1e-4 if CUDA else 1e-5)
+    assert albedo_only == (want_grads["density_mlp.0.weight"] is None)
+
+
+def test_field_stack_matches_fields(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    fields = [small_field(20), small_field(21)]
+    points = (torch.rand(90, 3, generator=torch.Generator().manual_seed(22)) - 0.5).to(DEVICE)
+    counts = [60, 30]
+    obj = torch.repeat_interleave(torch.arange(2), torch.tensor(counts)).to(DEVICE)
+    stacked = FieldStack(fields).query(points, obj, counts)
+    alone = [f.query(p) for f, p in zip(fields, points.split(counts), strict=True)]
+    assert_near(stacked.density, torch.cat([s.density for s in alone]), 1e-5)
+    assert_near(stacked.albedo, torch.cat([s.albedo for s in alone]), 1e-5)
+
+
+def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:
+    density, albedo = heads(32, 64, 3, seed=30)
+    x = torch.randn(20, 32, device=DEVICE)
+    monkeypatch.setenv(BACKEND_ENV, "fast")
+    with pytest.raises(ValueError, match=f"{BACKEND_ENV} must be one of auto, triton, eager"):
+        evaluate_heads(x, density, albedo)
+    monkeypatch.setenv(BACKEND_ENV, "triton")
+    one_layer = _mlp(32, 64, 1, 3).to(DEVICE)  # not a shape the kernels take: the module, under any choice
+    assert_near(evaluate_heads(x, density, one_layer)[1], one_layer(x), 0.0)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a Triton kernel ran on the eager path")
+
+    monkeypatch.setattr(mlp_triton, "heads_forward", refuse)
+    monkeypatch.setenv(BACKEND_ENV, "eager")
+    assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
+    if not CUDA:
+        monkeypatch.setenv(BACKEND_ENV, "auto")  # the CPU's default keeps the modules
+        assert_near(evaluate_heads(x, density, albedo)[1], albedo(x), 0.0)
+        monkeypatch.setenv(BACKEND_ENV, "triton")
+        monkeypatch.setenv("TRITON_INTERPRET", "0")
+        with pytest.raises(RuntimeError, match=f"{BACKEND_ENV}=triton but the Triton field-MLP kernels cannot run"):
+            evaluate_heads(x, density, albedo)
