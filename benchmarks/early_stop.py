@@ -62,7 +62,7 @@ def _steps(work: Path, schedule: Schedule, scene: str) -> dict[str, dict[str, in
 
 
 def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str, work: Path, eval_cfg: EvalConfig,
-        jobs: int, log: Path) -> list[dict[str, Any]]:
+        jobs: int, log: Path, variants: tuple[bool, ...] = (False, True)) -> list[dict[str, Any]]:
     """Every cell not yet in ``log``, ``jobs`` at a time; each finished record is appended to ``log``
     (JSON lines) at once, so a run cut short by a time limit keeps what it finished and the next
     run with the same log goes on from there."""
@@ -72,7 +72,7 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
     records = [json.loads(line) for line in log.read_text().splitlines() if line] if log.is_file() else []
     finished = {(r["base"], r["scene"], r["seed"], r["early_stop"]) for r in records}
     cells = [(base, seed, early, name) for base in bases for name in scenes for seed in seeds
-             for early in (False, True) if (base.label, name, seed, early) not in finished]
+             for early in variants if (base.label, name, seed, early) not in finished]
     log.parent.mkdir(parents=True, exist_ok=True)
     where = machine(device)
 
@@ -186,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("outputs/early_stop"))
     ap.add_argument("--results", type=Path, default=RESULTS)
     ap.add_argument("--name", default="")
+    ap.add_argument("--variants", default="fixed,early",
+                    help="which runs of each cell: fixed, early or both; one alone only appends records "
+                         "(compare two record files with benchmarks/records_ab.py)")
     ap.add_argument("--from-records", type=Path, nargs="*", default=None,
                     help="summarise these JSON-lines record files (of earlier, possibly cut-short runs) instead")
     args = ap.parse_args(argv)
@@ -194,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"unknown schedule(s) {unknown}; choose from {sorted(BASES)}")
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda but no CUDA device is visible")
+    variants = tuple(v == "early" for v in dict.fromkeys(args.variants.split(",")))
+    if not variants or not set(args.variants.split(",")) <= {"fixed", "early"}:
+        ap.error(f"--variants takes fixed, early or fixed,early; got {args.variants!r}")
     bases = [BASES[s] for s in args.schedules.split(",")]
     scenes, seeds = [s for s in args.scenes.split(",") if s], [int(s) for s in args.seeds.split(",") if s]
     eval_cfg = SIZES["gpu" if args.device == "cuda" else "cpu"].eval
@@ -205,7 +211,10 @@ def main(argv: list[str] | None = None) -> int:
         scenes = list(dict.fromkeys(r["scene"] for r in records))
     else:
         records = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
-                      args.results / f"{name}.records.jsonl")
+                      args.results / f"{name}.records.jsonl", variants)
+        if len(variants) == 1:
+            print(f"{len(records)} records in {args.results / f'{name}.records.jsonl'}")
+            return 0
     rows = summarise(records)
     payload = {"title": "Early stopping on and off", "machine": records[0]["machine"], "date": records[0]["date"],
                "command": "python -m benchmarks.early_stop " + " ".join(argv if argv is not None else sys.argv[1:]),

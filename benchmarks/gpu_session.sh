@@ -10,7 +10,7 @@
 #   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
 #   SPEED_TESTS=1 first runs the CUDA tests of the speed work. Results and profiles -> $OUT.
 # early_stop: benchmarks/early_stop.py on CUDA (ES_SCHEDULES, ES_SCENES, ES_JOBS, ES_NAME), results -> $OUT.
-# heads: the CUDA tests of the fused field heads and the NeRF render, field_speed.py, then the NeRF stage of
+# heads: the CUDA tests of the fused field heads and the NeRF render, field_heads_kernel.py, then the NeRF stage of
 #   paper_speed.py with MORPHEUS_FIELD_MLP=eager and auto (HEADS_BATCHES, default "1 4 8"); carry outputs/gpu_refs.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
@@ -34,12 +34,10 @@ if [ "$mode" = early_stop ]; then
   exit 0
 fi
 if [ "$mode" = heads ]; then
-  MORPHEUS_TEST_DEVICE=cuda timeout 150 python -m pytest -q -p no:cacheprovider tests/test_field_heads.py \
-    tests/test_hashgrid_triton.py tests/test_nerf.py tests/test_volume_stack.py tests/test_cuda_volume.py \
-    > "$out/pytest_cuda_heads.log" 2>&1
+  MORPHEUS_TEST_DEVICE=cuda timeout 100 python -m pytest -q -p no:cacheprovider tests/test_field_heads.py \
+    tests/test_cuda_volume.py > "$out/pytest_cuda_heads.log" 2>&1
   echo "pytest exit $?" >> "$out/pytest_cuda_heads.log"
-  timeout 100 python benchmarks/field_speed.py --device cuda --tag h200_heads --repeats 10 > "$out/field_speed.log" 2>&1
-  cp benchmarks/results/field_speed_h200_heads.* "$out/" 2>/dev/null
+  timeout 120 python -m benchmarks.field_heads_kernel --tag h200 --results "$out" > "$out/field_heads_kernel.log" 2>&1
   for heads in eager auto; do
     MORPHEUS_FIELD_MLP=$heads timeout 150 python benchmarks/paper_speed.py --device cuda --mode after --stages nerf \
       --batches ${HEADS_BATCHES:-1 4 8} --steps 10 --warmup 4 --tag "h200_heads_$heads" --store outputs/gpu_refs \

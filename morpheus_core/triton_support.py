@@ -30,8 +30,13 @@ def load_triton() -> tuple[Any, Any, Any]:
         import triton
         import triton.language as tl
     except ImportError:
-        return None, None, lambda fn: fn
+        return None, None, _no_jit
     return triton, tl, triton.jit
+
+
+def _no_jit(fn: Any = None, **_options: Any) -> Any:
+    """``triton.jit``'s stand-in, bare (``@jit``) or with options (``@jit(do_not_specialize=...)``)."""
+    return fn if fn is not None else (lambda f: f)
 
 
 CHOICES = ("auto", "triton", "eager")

@@ -17,11 +17,12 @@ GPU time). Here a block of rows goes through a whole head in registers:
   feature gradient is the sum of the two heads' contributions. Both add atomically into a zeroed
   buffer; two addends from zero give the same float in either order, so this is deterministic too.
 
-Matmul precision follows PyTorch's switch for fp32 matmuls: ``tf32`` when
-``torch.backends.cuda.matmul.allow_tf32`` is on (what the eager matmul would then do), else
-``tf32x3`` (three TF32 products, about fp32 accuracy, still on the tensor cores). The interpreter
-computes in fp32. Sizes: widths up to 128, outputs up to 16, padded to powers of two ≥ 16 with
-masked loads (no packed copies of the weights).
+Products are TF32 (inputs rounded to 10-bit mantissas, fp32 accumulation), whatever PyTorch's
+``allow_tf32`` says: tcnn runs these MLPs in fp16, and on the H200 the fp32-exact alternative
+(``tf32x3``) was slower than the eager modules (``benchmarks/results/field_speed_h200_heads.md``),
+so the kernels would have no reason to exist in full fp32. ``MORPHEUS_FIELD_MLP=eager`` gives the fp32
+modules back. The interpreter computes in fp32. Sizes: widths up to 128, outputs up to 16, padded
+to powers of two ≥ 16 with masked loads (no packed copies of the weights).
 """
 
 from __future__ import annotations
@@ -42,6 +43,13 @@ _FORWARD_BLOCK = 128
 _BACKWARD_BLOCK = 64
 _FORWARD_WARPS = 4
 _BACKWARD_WARPS = 4
+_PROGRAMS_PER_SM = 4
+
+# Integer arguments that change from call to call: Triton would otherwise compile a variant for each
+# combination of "divisible by 16" and "equal to 1" it meets (seconds each, mid-run; H200: a NeRF
+# batch of 4, whose sample counts vary every step, spent its first steps compiling).
+_VARYING = ("n_rows", "n_tiles", "n_programs", "first_head")
+_VARYING_FORWARD = ("n_rows",)
 
 Head = Sequence[Tensor]
 """One head's parameters: (w1, b1, w2, b2, w3, b3), weights in ``nn.Linear``'s (out, in) layout."""
@@ -109,7 +117,7 @@ def _forward_head(x, rows, valid, w1, b1, w2, b2, w3, b3, out_ptr, n_in, n_hidde
     tl.store(out_ptr + rows[:, None] * n_out + o[None, :], y, mask=valid[:, None] & (o[None, :] < n_out))
 
 
-@_jit
+@_jit(do_not_specialize=_VARYING_FORWARD)
 def _forward_kernel(x_ptr, dw1, db1, dw2, db2, dw3, db3, d_out, aw1, ab1, aw2, ab2, aw3, ab3, a_out,
                     n_rows, n_in, n_hidden, n_out_a, IN: tl.constexpr, HID: tl.constexpr, OUT: tl.constexpr,
                     BLOCK: tl.constexpr, ALBEDO: tl.constexpr, PREC: tl.constexpr):
@@ -182,7 +190,7 @@ def _backward_head(x_ptr, g_ptr, gx_ptr, part_ptr, w1, b1, w2, b2, w3, b3, n_row
     _store_vector(base, acc_b3, n_out, OUT)
 
 
-@_jit
+@_jit(do_not_specialize=_VARYING)
 def _backward_kernel(x_ptr, gx_ptr, dw1, db1, dw2, db2, dw3, db3, d_grad, d_part, aw1, ab1, aw2, ab2, aw3, ab3,
                      a_grad, a_part, n_rows, n_in, n_hidden, n_out_a, n_tiles, n_programs, first_head,
                      IN: tl.constexpr, HID: tl.constexpr, OUT: tl.constexpr, BLOCK: tl.constexpr,
@@ -199,10 +207,6 @@ def _pad(n: int) -> int:
     return max(16, triton.next_power_of_2(n))
 
 
-def _precision() -> str:
-    return "tf32" if torch.backends.cuda.matmul.allow_tf32 else "tf32x3"
-
-
 @functools.cache
 def _sm_count(index: int) -> int:
     return torch.cuda.get_device_properties(index).multi_processor_count
@@ -210,7 +214,9 @@ def _sm_count(index: int) -> int:
 
 def _programs(feats: Tensor, n_tiles: int) -> int:
     """Backward programs per head: a few per SM keep the GPU busy; fewer programs mean fewer partials."""
-    per_device = 4 if interpreting() or feats.device.type != "cuda" else 4 * _sm_count(feats.device.index or 0)
+    if interpreting() or feats.device.type != "cuda":
+        return max(1, min(n_tiles, 4))
+    per_device = _PROGRAMS_PER_SM * _sm_count(feats.device.index or 0)
     return max(1, min(n_tiles, per_device))
 
 
@@ -240,7 +246,7 @@ def heads_forward(feats: Tensor, density: Head, albedo: Head | None) -> tuple[Te
         with device_guard(feats):
             _forward_kernel[(triton.cdiv(n, _FORWARD_BLOCK),)](
                 feats, *d, d_out, *a, a_out, n, n_in, n_hidden, n_out_a, IN=_pad(n_in), HID=_pad(n_hidden),
-                OUT=MAX_OUT, BLOCK=_FORWARD_BLOCK, ALBEDO=albedo is not None, PREC=_precision(),
+                OUT=MAX_OUT, BLOCK=_FORWARD_BLOCK, ALBEDO=albedo is not None, PREC="tf32",
                 num_warps=_FORWARD_WARPS)
     return d_out, (a_out if albedo is not None else None)
 
@@ -278,7 +284,7 @@ def heads_backward(feats: Tensor, density: Head, albedo: Head | None, grad_densi
             _backward_kernel[(programs, sum(wanted))](
                 feats, grad_x if grad_x is not None else feats, *d, d_grad, d_part, *a, a_grad, a_part,
                 n, n_in, n_hidden, n_out_a, n_tiles, programs, first, IN=_pad(n_in), HID=_pad(n_hidden),
-                OUT=MAX_OUT, BLOCK=_BACKWARD_BLOCK, WANT_X=grad_x is not None, PREC=_precision(),
+                OUT=MAX_OUT, BLOCK=_BACKWARD_BLOCK, WANT_X=grad_x is not None, PREC="tf32",
                 num_warps=_BACKWARD_WARPS)
 
     def unpack(part: Tensor, head: list[Tensor]) -> list[Tensor]:
