@@ -44,5 +44,5 @@ def test_cli_writes_results_and_refuses_disjoint_files(tmp_path: Path) -> None:
     assert main([str(files[0]), str(files[1]), "--name", "ab", "--results", str(tmp_path)]) == 0
     text = (tmp_path / "ab.md").read_text()
     assert "+0.50 ± 0.00 (n=2)" in text and json.loads((tmp_path / "ab.json").read_text())["rows"][0]["pairs"] == 2
-    with pytest.raises(SystemExit, match="no .* cell finished in both"):
+    with pytest.raises(SystemExit, match=r"no .* cell finished in both"):
         main([str(files[0]), str(files[2]), "--name", "ac", "--results", str(tmp_path)])
