@@ -39,6 +39,7 @@ from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
+from morpheus_core.geometry.field_heads import DEFAULT as HEADS_DEFAULT
 from morpheus_core.geometry.hashgrid import BACKEND_ENV
 from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
@@ -332,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
                "mode": args.mode, "accel": accel, "peak": "reserved",
                "compiled": dev.type == "cuda" and mode["compile"] == "1",
                "hashgrid": os.environ.get(BACKEND_ENV) or "auto",
-               "field_mlp": os.environ.get(HEADS_ENV) or "auto", "tf32": not args.fp32_matmul,
+               "field_mlp": os.environ.get(HEADS_ENV) or HEADS_DEFAULT, "tf32": not args.fp32_matmul,
                "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
                "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
                "wall_s": round(time.perf_counter() - t_start, 1),

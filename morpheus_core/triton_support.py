@@ -58,16 +58,17 @@ def device_guard(x: torch.Tensor) -> Any:
 
 
 def choose(env: str, device: torch.device, supported: Callable[[], bool], load: Callable[[], ModuleType],
-           what: str) -> ModuleType | None:
+           what: str, default: str = "auto") -> ModuleType | None:
     """The kernel module ``load()`` when ``env`` asks for it and it can run on ``device``, else None
     (the caller's eager code).
 
-    ``auto`` (the default): the kernels on CUDA; the CPU never imports them (nor Triton), so its path
-    stays the eager code. ``triton``: insist, an error where they cannot run (a CPU without
-    ``TRITON_INTERPRET=1``). ``eager``: the tensor code everywhere. Inputs the kernels do not take
-    (``supported()`` false: float64 for gradcheck, an unsupported width) run eagerly under any choice.
+    ``default`` applies when ``env`` is unset. ``auto``: the kernels on CUDA; the CPU never imports
+    them (nor Triton), so its path stays the eager code. ``triton``: insist, an error where they
+    cannot run (a CPU without ``TRITON_INTERPRET=1``). ``eager``: the tensor code everywhere.
+    Inputs the kernels do not take (``supported()`` false: float64 for gradcheck, an unsupported
+    width) run eagerly under any choice.
     """
-    choice = os.environ.get(env) or "auto"
+    choice = os.environ.get(env) or default
     if choice not in CHOICES:
         raise ValueError(f"{env} must be one of {', '.join(CHOICES)}; got {choice!r}")
     if choice == "eager" or (choice == "auto" and device.type != "cuda"):
