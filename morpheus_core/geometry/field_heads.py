@@ -39,16 +39,22 @@ def head_parameters(mlp: nn.Module) -> list[Tensor] | None:
     return params
 
 
-def _kernels(feats: Tensor, heads: list[list[Tensor] | None]) -> ModuleType | None:
+def _kernels(feats: Tensor, mlps: list[nn.Module]) -> tuple[ModuleType, list[list[Tensor]]] | None:
+    """The kernel module and the heads' parameters when the kernels take these heads, else None.
+    The parameters are gathered only once ``choose`` asks: the CPU's path does no extra work."""
+    heads: list[list[Tensor] | None] = []
+
     def load() -> ModuleType:
         from morpheus_core.geometry import mlp_triton
 
         return mlp_triton
 
     def supported() -> bool:
+        heads.extend(head_parameters(m) for m in mlps)
         return all(h is not None for h in heads) and load().supports(feats, heads)  # type: ignore[arg-type]
 
-    return choose(BACKEND_ENV, feats.device, supported, load, "field-MLP", DEFAULT)
+    kernels = choose(BACKEND_ENV, feats.device, supported, load, "field-MLP", DEFAULT)
+    return (kernels, heads) if kernels is not None else None  # type: ignore[return-value]
 
 
 class _FusedHeads(torch.autograd.Function):
@@ -77,10 +83,9 @@ class _FusedHeads(torch.autograd.Function):
 
 def evaluate_heads(feats: Tensor, density_mlp: nn.Module, albedo_mlp: nn.Module | None) -> tuple[Tensor, Tensor | None]:
     """``(density_mlp(feats), albedo_mlp(feats))``, the second None when ``albedo_mlp`` is."""
-    heads = [head_parameters(density_mlp)] + ([head_parameters(albedo_mlp)] if albedo_mlp is not None else [])
-    kernels = _kernels(feats, heads)
-    if kernels is None:
+    chosen = _kernels(feats, [density_mlp] + ([albedo_mlp] if albedo_mlp is not None else []))
+    if chosen is None:
         return density_mlp(feats), (albedo_mlp(feats) if albedo_mlp is not None else None)
-    params = [p for head in heads for p in head]  # type: ignore[union-attr]
-    out = _FusedHeads.apply(feats, kernels, albedo_mlp is not None, *params)
+    kernels, heads = chosen
+    out = _FusedHeads.apply(feats, kernels, albedo_mlp is not None, *[p for head in heads for p in head])
     return out[0], (out[1] if albedo_mlp is not None else None)
