@@ -99,8 +99,8 @@ def markdown(meta: dict[str, object], rows: list[dict[str, object]]) -> str:
         lines.append("")
         lines.append(f"2^{n.bit_length() - 1} rows: best fused forward + backward {best_f['ms'] + best_b['ms']:.2f} ms "
                      f"(forward {best_f['block']}×{best_f['warps']}, backward {best_b['block']}×{best_b['warps']}, "
-                     f"{best_b['programs_per_sm']} per SM) against the modules' "
-                     + ", ".join(f"{k}: {v:.2f} ms" for k, v in mods.items()) + ".")
+                     f"{best_b['programs_per_sm']} per SM) against the modules ("
+                     + ", ".join(f"{k}: {v:.2f} ms" for k, v in mods.items()) + ").")
     return "\n".join(lines) + "\n"
 
 

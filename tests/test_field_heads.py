@@ -191,8 +191,12 @@ def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(mlp_triton, "heads_forward", refuse)
     monkeypatch.setenv(BACKEND_ENV, "eager")
     assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
-    monkeypatch.delenv(BACKEND_ENV)  # unset: the modules, on CUDA too, until every scene has been checked
-    assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
+    monkeypatch.delenv(BACKEND_ENV)  # unset means auto: the kernels on CUDA, the modules on the CPU
+    if CUDA:
+        with pytest.raises(AssertionError, match="a Triton kernel ran"):
+            evaluate_heads(x, density, albedo)
+    else:
+        assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
     if not CUDA:
         monkeypatch.setenv(BACKEND_ENV, "auto")  # on the CPU, auto keeps the modules
         assert_near(evaluate_heads(x, density, albedo)[1], albedo(x), 0.0)

@@ -4,11 +4,11 @@
 that is ``mlp_triton``'s two kernels, forward and backward; elsewhere, and for inputs those
 kernels do not take, the ``nn.Sequential`` modules themselves (the CPU path and the reference).
 ``MORPHEUS_FIELD_MLP`` picks, like ``MORPHEUS_HASHGRID`` (``triton_support.choose``): ``auto``
-(the kernels on CUDA), ``triton`` (insist) or ``eager`` (the modules everywhere). Unset, it is
-``eager`` for now: the kernels' TF32 products were checked against the fp32 modules on 5 of the 8
-synthetic scenes (``benchmarks/results/heads_quality_h200.md``, all inside the seed spread); the
-default becomes ``auto`` once the other three have been run. The parameters stay the modules'
-own, so checkpoints, optimisers and parameter groups do not see which path ran.
+(the kernels on CUDA; the default), ``triton`` (insist) or ``eager`` (the modules everywhere).
+The kernels' TF32 products were checked against the fp32 modules on all 8 synthetic scenes × 3
+seeds (``benchmarks/results/heads_quality_h200.md``: every scene inside the seed spread). The
+parameters stay the modules' own, so checkpoints, optimisers and parameter groups do not see which
+path ran.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from morpheus_core.triton_support import choose
 
 BACKEND_ENV = "MORPHEUS_FIELD_MLP"
-DEFAULT = "eager"
+DEFAULT = "auto"
 
 
 def head_parameters(mlp: nn.Module) -> list[Tensor] | None:

@@ -43,7 +43,7 @@ _FORWARD_BLOCK = 128
 _BACKWARD_BLOCK = 64
 _FORWARD_WARPS = 4
 _BACKWARD_WARPS = 4
-_PROGRAMS_PER_SM = 4
+_PROGRAMS_PER_SM = 8
 
 # Integer arguments that change from call to call: Triton would otherwise compile a variant for each
 # combination of "divisible by 16" and "equal to 1" it meets (seconds each, mid-run; H200: a NeRF
