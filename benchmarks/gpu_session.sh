@@ -10,8 +10,12 @@
 #   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
 #   SPEED_TESTS=1 first runs the CUDA tests of the speed work. Results and profiles -> $OUT.
 # early_stop: benchmarks/early_stop.py on CUDA (ES_SCHEDULES, ES_SCENES, ES_JOBS, ES_NAME), results -> $OUT.
-# heads: the CUDA tests of the fused field heads and the NeRF render, field_heads_kernel.py, then the NeRF stage of
+# heads: the CUDA tests of the fused field heads, the NeRF render and the mesh renderer, then the NeRF stage of
 #   paper_speed.py with MORPHEUS_FIELD_MLP=eager and auto (HEADS_BATCHES, default "1 4 8"); carry outputs/gpu_refs.
+#   (The heads' launch-size sweep is its own command: python -m benchmarks.field_heads_kernel --tag h200.)
+# ab: paper_speed.py (AB_ARGS) in this tree and in a reference tree made by reversing AB_PATCH (a diff of this
+#   tree against the reference, e.g. `git diff HEAD -- morpheus_core > ab.patch`), reference first; tags
+#   h200_${AB_NAME}_{ref,new}; carry outputs/gpu_refs. The two tables come from one call, so their ratio holds.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 set -uo pipefail
@@ -34,15 +38,25 @@ if [ "$mode" = early_stop ]; then
   exit 0
 fi
 if [ "$mode" = heads ]; then
-  MORPHEUS_TEST_DEVICE=cuda timeout 100 python -m pytest -q -p no:cacheprovider tests/test_field_heads.py \
-    tests/test_cuda_volume.py > "$out/pytest_cuda_heads.log" 2>&1
+  MORPHEUS_TEST_DEVICE=cuda timeout 150 python -m pytest -q -p no:cacheprovider tests/test_field_heads.py \
+    tests/test_cuda_volume.py tests/test_raster.py tests/test_mesh_renderer.py tests/test_marching_tets.py \
+    tests/test_dmtet.py > "$out/pytest_cuda_heads.log" 2>&1
   echo "pytest exit $?" >> "$out/pytest_cuda_heads.log"
-  timeout 120 python -m benchmarks.field_heads_kernel --tag h200 --results "$out" > "$out/field_heads_kernel.log" 2>&1
   for heads in eager auto; do
     MORPHEUS_FIELD_MLP=$heads timeout 150 python benchmarks/paper_speed.py --device cuda --mode after --stages nerf \
       --batches ${HEADS_BATCHES:-1 4 8} --steps 10 --warmup 4 --tag "h200_heads_$heads" --store outputs/gpu_refs \
       --out "$out" ${SPEED_ARGS:-} > "$out/speed_heads_$heads.log" 2>&1
     echo "exit $?" >> "$out/speed_heads_$heads.log"
+  done
+  exit 0
+fi
+if [ "$mode" = ab ]; then
+  rm -rf /tmp/ab_ref && cp -r . /tmp/ab_ref && patch -d /tmp/ab_ref -R -p1 -s < "${AB_PATCH:?a diff of this tree against the reference}"
+  for side in ref new; do
+    dir=.; [ "$side" = ref ] && dir=/tmp/ab_ref
+    (cd "$dir" && timeout "${AB_TIMEOUT:-200}" python benchmarks/paper_speed.py --device cuda --mode after \
+      --tag "h200_${AB_NAME:-ab}_$side" --store outputs/gpu_refs --out "$out" ${AB_ARGS:-}) > "$out/ab_$side.log" 2>&1
+    echo "exit $?" >> "$out/ab_$side.log"
   done
   exit 0
 fi

@@ -266,6 +266,13 @@ def test_sdf_sign_change_loss(cache_dir: Path) -> None:
     zero = sdf_sign_change_loss(sdf, torch.tensor([[0, 1], [2, 3]]))
     zero.backward()
     assert float(zero.detach()) == 0.0 and (sdf.grad == 0).all()
+    # Non-finite values on edges that do not cross reach neither the loss nor the gradient.
+    wild = torch.tensor([0.3, -0.1, float("nan"), float("inf"), -float("inf")], dtype=torch.float64,
+                        requires_grad=True)
+    kept = sdf_sign_change_loss(wild, torch.tensor([[0, 1], [2, 3], [3, 3], [4, 4]]), 0.5)
+    kept.backward()
+    assert float(kept) == pytest.approx(expect, rel=1e-12)
+    assert torch.isfinite(wild.grad).all() and (wild.grad[2:] == 0).all()
     # Gradient matches finite differences.
     x = torch.randn(8, dtype=torch.float64, generator=torch.Generator().manual_seed(3), requires_grad=True)
     edges = torch.tensor([[0, 1], [1, 2], [2, 3], [4, 5], [5, 6], [6, 7], [0, 7]])

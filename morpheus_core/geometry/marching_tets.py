@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from morpheus_core.gather import gather_rows
 from morpheus_core.geometry.mesh import Mesh
 
 # The six edges of a tet as corner pairs; "local edge e" below indexes this tuple.
@@ -170,7 +171,8 @@ def marching_tets(vertices: Tensor, tets: Tensor, sdf: Tensor) -> Mesh:
     weld_vertex = -1 - unique_key
     va = torch.where(welded, weld_vertex, torch.div(unique_key, n, rounding_mode="floor"))
     vb = torch.where(welded, weld_vertex, unique_key % n)
-    points = interpolate_crossing(vertices[va], vertices[vb], sdf[va], sdf[vb])
+    points = interpolate_crossing(gather_rows(vertices, va), gather_rows(vertices, vb), gather_rows(sdf, va),
+                                  gather_rows(sdf, vb))
 
     local = torch.full_like(ends_a, -1)
     local[crossing] = slot
@@ -186,5 +188,5 @@ def marching_tets(vertices: Tensor, tets: Tensor, sdf: Tensor) -> Mesh:
             raise EmptySurfaceError("every surface triangle collapsed onto grid vertices where the SDF is exactly 0 "
                                     "(the outside is only isolated zero points): there is no surface")
         used, faces = torch.unique(faces, return_inverse=True)
-        points = points[used]
+        points = gather_rows(points, used)
     return Mesh(points, faces)

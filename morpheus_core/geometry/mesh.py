@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from morpheus_core.gather import gather_rows
+
 # Normalising a zero-length normal (degenerate face, isolated vertex) must not produce NaN.
 _NORMAL_EPS = 1e-20
 
@@ -41,7 +43,7 @@ class Mesh:
 
     def face_vertices(self) -> Tensor:
         """(F, 3, 3): the corner positions of every face."""
-        return self.vertices[self.faces]
+        return gather_rows(self.vertices, self.faces)
 
     def face_normals(self, normalize: bool = True) -> Tensor:
         """(F, 3) outward normals (right-hand rule on the winding); area-weighted if not normalised."""

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from morpheus_core.gather import gather_rows
 from morpheus_core.geometry.marching_tets import (
     EmptySurfaceError,
     NonFiniteFieldError,
@@ -40,14 +41,18 @@ def sdf_sign_change_loss(sdf: Tensor, edges: Tensor, scale: float = 1.0) -> Tens
     """
     if scale <= 0:
         raise ValueError(f"scale must be positive, got {scale}")
-    fa, fb = sdf[edges[:, 0]], sdf[edges[:, 1]]
+    fa, fb = gather_rows(sdf, edges[:, 0]), gather_rows(sdf, edges[:, 1])
     crossing = (fa < 0) != (fb < 0)
-    if not bool(crossing.any()):
-        return sdf.sum() * 0.0
-    fa, fb = fa[crossing], fb[crossing]
-    la, lb = -fa / scale, -fb / scale
+    # Every edge is evaluated and the others weighted 0, instead of selecting the crossing ones: a
+    # boolean selection reads its count on the host (a sync every step) and scatters its gradient
+    # with a sort. The ends of other edges are replaced by 0 first, so a non-finite value there
+    # can give neither the loss nor the gradient a NaN.
+    fa, fb = torch.where(crossing, fa, 0.0), torch.where(crossing, fb, 0.0)
     ta, tb = (fa < 0).to(sdf.dtype), (fb < 0).to(sdf.dtype)
-    return (F.binary_cross_entropy_with_logits(la, tb) + F.binary_cross_entropy_with_logits(lb, ta))
+    terms = (F.binary_cross_entropy_with_logits(-fa / scale, tb, reduction="none")
+             + F.binary_cross_entropy_with_logits(-fb / scale, ta, reduction="none"))
+    weight = crossing.to(sdf.dtype)
+    return (terms * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from morpheus_core.gather import gather_batched_rows, gather_rows
 from morpheus_core.render.raster import Fragments, RasterInputError, _pair_chunks, _span, _to_pixels
 
 # Resolution of the crossing position t in the (t, edge) key that picks the outermost edge of a pair.
@@ -107,7 +108,7 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
         win_view = p // hw
 
     # Differentiable recomputation of t for the winning edge of each pair.
-    ends = clip[win_view.unsqueeze(-1), topo.vertices[win_edge]]  # (P, 2, 4)
+    ends = gather_batched_rows(clip, win_view.unsqueeze(-1), topo.vertices[win_edge])  # (P, 2, 4)
     w = ends[..., 3]
     ex = (ends[..., 0] / w + 1.0) * (0.5 * width) - 0.5
     ey = (1.0 - ends[..., 1] / w) * (0.5 * height) - 0.5
@@ -140,7 +141,7 @@ def antialias(image: Tensor, fragments: Fragments, crossings: SilhouetteCrossing
     t = crossings.t.to(flat.dtype)
     w_in = torch.relu(0.5 - t)
     w_out = torch.relu(t - 0.5)
-    inner, outer = flat[crossings.inner], flat[crossings.outer]
+    inner, outer = gather_rows(flat, crossings.inner), gather_rows(flat, crossings.outer)
     pull = torch.zeros_like(flat).index_add(0, crossings.inner, w_in.unsqueeze(-1) * (outer - inner))
     pull = pull.index_add(0, crossings.outer, w_out.unsqueeze(-1) * (inner - outer))
     weight = flat.new_zeros(flat.shape[0]).index_add(0, crossings.inner, w_in).index_add(0, crossings.outer, w_out)

@@ -39,6 +39,8 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from morpheus_core.gather import gather_batched_rows, gather_rows
+
 _INT64_MAX = torch.iinfo(torch.int64).max
 # Bits of the packed z-buffer key spent on depth at most; the rest (below bit 62) hold the face id.
 _MAX_DEPTH_BITS = 40
@@ -308,7 +310,7 @@ def _perspective_barycentrics(clip: Tensor, faces: Tensor, pixel_index: Tensor, 
     view = pixel_index // hw
     py = (pixel_index % hw) // width
     px = pixel_index % width
-    corners = clip[view.unsqueeze(-1), faces[face]]  # (N, 3, 4)
+    corners = gather_batched_rows(clip, view.unsqueeze(-1), faces[face])  # (N, 3, 4)
     w = corners[..., 3]
     sx = (corners[..., 0] / w + 1.0) * (0.5 * width) - 0.5
     sy = (1.0 - corners[..., 1] / w) * (0.5 * height) - 0.5
@@ -331,11 +333,11 @@ def interpolate_sparse(attributes: Tensor, fragments: Fragments) -> Tensor:
                                f"got {tuple(attributes.shape)}")
     corner_ids = fragments.faces[fragments.face]  # (N, 3)
     if attributes.dim() == 2:
-        corners = attributes[corner_ids]
+        corners = gather_rows(attributes, corner_ids)
     else:
         if attributes.shape[0] not in (1, fragments.batch):
             raise RasterInputError(f"attribute batch {attributes.shape[0]} does not match {fragments.batch} views")
         view = fragments.pixel_index // (fragments.height * fragments.width)
         view = view if attributes.shape[0] > 1 else torch.zeros_like(view)
-        corners = attributes[view.unsqueeze(-1), corner_ids]
+        corners = gather_batched_rows(attributes, view.unsqueeze(-1), corner_ids)
     return (fragments.bary.to(corners.dtype).unsqueeze(-1) * corners).sum(-2)
