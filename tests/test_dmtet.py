@@ -14,7 +14,12 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from morpheus_core.geometry.marching_tets import EmptySurfaceError, NonFiniteFieldError, marching_tets
+from morpheus_core.geometry.marching_tets import (
+    EmptySurfaceError,
+    NonFiniteFieldError,
+    marching_tets,
+    require_surface,
+)
 from morpheus_core.geometry.mesh import Mesh, edge_face_counts, surface_area, unique_edges
 from morpheus_core.geometry.tet_surface import (
     FACES_PER_CELL_AREA,
@@ -179,6 +184,27 @@ def test_non_finite_parameters_raise(bad: float, where: str, cache_dir: Path) ->
         getattr(model, where).view(-1)[5] = bad
     with pytest.raises(NonFiniteFieldError, match=f"DMTet {where}"):
         model()
+
+
+def test_surface_checks_name_what_failed(cache_dir: Path) -> None:
+    model = make_dmtet(6, cache_dir)
+    with torch.no_grad():  # inside only on the boundary: the closed boundary leaves nothing inside
+        model.sdf.copy_(torch.where(model.boundary, -0.3, 0.3))
+    with pytest.raises(EmptySurfaceError, match="DMTet sdf with its boundary closed is ≥ 0 at all"):
+        model()
+    open_model = make_dmtet(6, cache_dir, close_boundary=False)
+    with torch.no_grad():
+        open_model.sdf.copy_(model.sdf)
+    assert open_model().num_faces > 0
+    # Several failures at once: the first in order is named, finiteness before the sign change.
+    gen = torch.Generator().manual_seed(11)
+    sdf, other = torch.rand(50, generator=gen) + 0.1, torch.randn(50, 3, generator=gen)
+    other[7, 1] = float("nan")
+    with pytest.raises(NonFiniteFieldError, match="second has 1 non-finite"):
+        require_surface({"first": other[:, 0], "second": other, "third": other}, {"sdf": sdf})
+    with pytest.raises(EmptySurfaceError, match="sdf is ≥ 0 at all 50"):
+        require_surface({"first": sdf}, {"sdf": sdf, "negated": -sdf})
+    require_surface({"first": sdf}, {"mixed": sdf - 0.6})
 
 
 def test_density_threshold_errors_name_the_threshold(cache_dir: Path) -> None:

@@ -92,22 +92,48 @@ def _tables(device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return _TABLE_CACHE[device]
 
 
+def _nonfinite_message(name: str, bad: int) -> str:
+    return (f"{name} has {bad} non-finite value(s) (NaN or ±inf); the optimisation diverged or the field it "
+            "came from is broken — lower the learning rate or restore the last checkpoint")
+
+
 def _require_finite(name: str, value: Tensor) -> None:
     if not bool(torch.isfinite(value).all()):
-        bad = int((~torch.isfinite(value)).sum())
-        raise NonFiniteFieldError(f"{name} has {bad} non-finite value(s) (NaN or ±inf); the optimisation "
-                                  "diverged or the field it came from is broken — lower the learning rate "
-                                  "or restore the last checkpoint")
+        raise NonFiniteFieldError(_nonfinite_message(name, int((~torch.isfinite(value)).sum())))
+
+
+def _sign_change_error(what: str, inside: int, total: int) -> EmptySurfaceError | None:
+    if inside == 0:
+        return EmptySurfaceError(f"{what} is ≥ 0 at all {total} grid vertices: everything is outside, "
+                                 "there is no surface (the shape vanished or was never initialised)")
+    if inside == total:
+        return EmptySurfaceError(f"{what} is < 0 at all {total} grid vertices: everything is inside, "
+                                 "there is no surface (the shape fills the whole grid)")
+    return None
 
 
 def _require_sign_change(sdf: Tensor, what: str = "SDF") -> None:
-    inside = int((sdf < 0).sum())
-    if inside == 0:
-        raise EmptySurfaceError(f"{what} is ≥ 0 at all {sdf.numel()} grid vertices: everything is outside, "
-                                "there is no surface (the shape vanished or was never initialised)")
-    if inside == sdf.numel():
-        raise EmptySurfaceError(f"{what} is < 0 at all {sdf.numel()} grid vertices: everything is inside, "
-                                "there is no surface (the shape fills the whole grid)")
+    error = _sign_change_error(what, int((sdf < 0).sum()), sdf.numel())
+    if error is not None:
+        raise error
+
+
+def require_surface(finite: dict[str, Tensor], signed: dict[str, Tensor]) -> None:
+    """Every ``finite`` tensor finite and every ``signed`` SDF with a sign change, read in one host sync.
+
+    The checks run before each extraction, every step of the DMTet stage; one read instead of one
+    per check keeps the host from waiting on the GPU several times a step. Raises
+    NonFiniteFieldError or EmptySurfaceError naming the first tensor that fails, in dict order.
+    """
+    counts = torch.stack([(~torch.isfinite(t)).sum() for t in finite.values()]
+                         + [(t < 0).sum() for t in signed.values()]).tolist()
+    for name, bad in zip(finite, counts[:len(finite)], strict=True):
+        if bad:
+            raise NonFiniteFieldError(_nonfinite_message(name, int(bad)))
+    for (what, sdf), inside in zip(signed.items(), counts[len(finite):], strict=True):
+        error = _sign_change_error(what, int(inside), sdf.numel())
+        if error is not None:
+            raise error
 
 
 def interpolate_crossing(pos_a: Tensor, pos_b: Tensor, sdf_a: Tensor, sdf_b: Tensor) -> Tensor:
@@ -142,9 +168,12 @@ def marching_tets(vertices: Tensor, tets: Tensor, sdf: Tensor) -> Mesh:
         raise ValueError(f"tets must be (T, 4) int64, got {tuple(tets.shape)} {tets.dtype}")
     if sdf.shape != vertices.shape[:1]:
         raise ValueError(f"sdf must be ({vertices.shape[0]},), got {tuple(sdf.shape)}")
-    _require_finite("sdf", sdf)
-    _require_finite("vertex positions", vertices)
-    _require_sign_change(sdf)
+    require_surface({"sdf": sdf, "vertex positions": vertices}, {"SDF": sdf})
+    return extract_surface(vertices, tets, sdf)
+
+
+def extract_surface(vertices: Tensor, tets: Tensor, sdf: Tensor) -> Mesh:
+    """:func:`marching_tets` without its input checks, for callers that ran :func:`require_surface`."""
     device, n = vertices.device, vertices.shape[0]
     table, count, edge_a, edge_b = _tables(device)
 

@@ -24,8 +24,9 @@ from morpheus_core.geometry.marching_tets import (
     NonFiniteFieldError,
     _require_finite,
     _require_sign_change,
+    extract_surface,
     interpolate_crossing,
-    marching_tets,
+    require_surface,
 )
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.tets import tet_grid
@@ -135,10 +136,14 @@ class DMTet(nn.Module):
 
     def forward(self) -> Mesh:
         """Extract the mesh (differentiable in ``sdf`` and ``deform``)."""
-        _require_finite("DMTet sdf", self.sdf)
-        _require_finite("DMTet deform", self.deform)
-        _require_sign_change(self.sdf, "DMTet sdf")
-        return marching_tets(self.vertex_positions(), self.tets, self.effective_sdf())
+        # The deformed positions are finite when the deformation is (tanh of a finite value), and the
+        # meshed SDF when the parameter is (a clamp): checking the parameters covers both.
+        sdf = self.effective_sdf()
+        signed = {"DMTet sdf": self.sdf}
+        if self.config.close_boundary:
+            signed["DMTet sdf with its boundary closed"] = sdf
+        require_surface({"DMTet sdf": self.sdf, "DMTet deform": self.deform}, signed)
+        return extract_surface(self.vertex_positions(), self.tets, sdf)
 
     extract = forward
 
