@@ -18,8 +18,10 @@ import tempfile
 import time
 from datetime import date
 from pathlib import Path
+from typing import Any
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from assets_store.store import Store
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
@@ -44,6 +46,25 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
+class _OpCounter(TorchDispatchMode):
+    """Counts the aten operators dispatched (backward and optimiser included): on a GPU each is a
+    kernel launch or a view, so the count tracks the host work of launch-bound stages on any device."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        self.calls += 1
+        return func(*args, **(kwargs or {}))
+
+
+def _ops_per_step(task: object, gen: torch.Generator) -> int:
+    with _OpCounter() as counter:
+        run_loop(task, LoopConfig(1, log_every=10_000, grad_clip=None), gen, "ops")  # type: ignore[arg-type]
+    return counter.calls
+
+
 def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
     run_loop(task, LoopConfig(warmup, log_every=10_000, grad_clip=None), gen, "warmup")  # type: ignore[arg-type]
     if dev.type == "cuda":
@@ -54,7 +75,8 @@ def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.G
     _sync(dev)
     ms = (time.perf_counter() - start) / steps * 1000
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else float("nan")
-    return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped}
+    return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped,
+            "aten_ops_per_step": _ops_per_step(task, gen)}
 
 
 def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path, store_root: Path) -> dict:
@@ -80,7 +102,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     grid = choose_grid(cfg.dmtet, plan.dmtet_grid.value if plan else None)
     dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.dmtet.deform_scale), device=dev)
     texture = TextureField(cfg.dmtet.texture_field, generator=gen).to(dev)
-    init_from_nerf(dmtet, texture, work / NERF_FILE, cfg.dmtet, dev, gen)
+    init_from_nerf(dmtet, texture, work, cfg.dmtet, dev, gen)
     dtask = DMTetTask(cfg.dmtet, ReferenceTarget.load(ref_dir, cfg.dmtet.resolution, dev), suite, dmtet, texture, dev)
     faces = dtask.mesh().num_faces
     rows["dmtet"] = _time(dtask, steps, warmup, dev, gen) | {"resolution": cfg.dmtet.resolution, "grid": grid,
@@ -109,12 +131,13 @@ def to_markdown(res: dict) -> str:
              f"torch {res['torch']}; {res['timed_steps']} timed steps after {res['warmup_steps']} warm-up, photo "
              f"`{res['photo']}`. The proxy prior's cost is a mesh render of the target; the real priors' cost "
              "is in `prior_speed_*.md` and adds to these.", "",
-             "| stage | size | ms/step | peak GiB | schedule steps | projected min |", "|---|---|---|---|---|---|"]
+             "| stage | size | ms/step | aten ops/step | peak GiB | schedule steps | projected min |",
+             "|---|---|---|---|---|---|---|"]
     for stage, r in res["stages"].items():
         size = f"{r['resolution']}²" + (f", {r['samples']} spp" if "samples" in r else "") + \
             (f", grid {r['grid']}" if "grid" in r else "") + (f", {r['faces']} faces" if "faces" in r else "")
-        lines.append(f"| {stage} | {size} | {r['ms_per_step']} | {r['peak_gib']} | {r['schedule_steps']} | "
-                     f"{r['projected_min']} |")
+        lines.append(f"| {stage} | {size} | {r['ms_per_step']} | {r.get('aten_ops_per_step', '–')} | {r['peak_gib']} | "
+                     f"{r['schedule_steps']} | {r['projected_min']} |")
     lines += ["", f"Projected whole schedule without the priors: **{res['projected_total_min_without_priors']} min**."]
     return "\n".join(lines) + "\n"
 

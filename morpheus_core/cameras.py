@@ -13,6 +13,7 @@ Conventions shared by every renderer (NeRF and mesh renders must line up pixel f
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -102,6 +103,17 @@ class Cameras:
             self.c2w[index], self.fov_y[index], self.elevation[index], self.azimuth[index], self.distance[index],
             self.near, self.far,
         )
+
+    @classmethod
+    def cat(cls, groups: Sequence[Cameras]) -> Cameras:
+        """One batch of every camera of ``groups``, in order (all with the same near and far planes)."""
+        if not groups:
+            raise ValueError("Cameras.cat needs at least one batch of cameras")
+        planes = {(g.near, g.far) for g in groups}
+        if len(planes) > 1:
+            raise ValueError(f"Cameras.cat needs one near/far pair, got {sorted(planes)}")
+        return cls(*(torch.cat([getattr(g, name) for g in groups]) for name in
+                     ("c2w", "fov_y", "elevation", "azimuth", "distance")), groups[0].near, groups[0].far)
 
     @property
     def device(self) -> torch.device:

@@ -124,6 +124,11 @@ def test_degenerate_meshes_stay_finite(device: torch.device) -> None:
     # The isolated vertex 5 is ignored, not pulled toward the origin.
     (grad,) = torch.autograd.grad(laplacian_smoothness(mesh), mesh_v)
     assert (grad[5] == 0).all()
+    # Every vertex on the boundary (an open fan) and skipped: 0, with a graph and zero gradients.
+    fan_v = torch.rand(4, 3, generator=torch.Generator().manual_seed(9)).to(device).requires_grad_(True)
+    fan = laplacian_smoothness(Mesh(fan_v, torch.tensor([[0, 1, 2], [0, 2, 3]], device=device)), skip_boundary=True)
+    (grad,) = torch.autograd.grad(fan, fan_v)
+    assert float(fan.detach()) == 0.0 and (grad == 0).all()
     # Nothing at all: 0 with a graph.
     empty = Mesh(torch.rand(4, 3, requires_grad=True), torch.zeros(0, 3, dtype=torch.int64))
     for loss in (laplacian_smoothness(empty), normal_consistency(empty)):

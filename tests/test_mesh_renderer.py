@@ -10,9 +10,9 @@ import torch
 import trimesh
 from torch import nn
 
-from morpheus_core.cameras import orbit
+from morpheus_core.cameras import Cameras, orbit
 from morpheus_core.geometry.mesh import Mesh
-from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_mesh
+from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_mesh, render_mesh_groups
 
 
 def sphere(subdivisions: int = 4, radius: float = 1.0, device: torch.device | str = "cpu") -> Mesh:
@@ -89,6 +89,32 @@ def test_batch_equals_separate_renders(device: torch.device) -> None:
         for name in ("rgb", "opacity", "depth", "normal"):
             # The batched projection rounds differently from the single one: float32 noise only.
             assert torch.allclose(getattr(batched, name)[i: i + 1], getattr(single, name), atol=2e-5)
+
+
+def test_camera_groups_render_as_separate_batches(device: torch.device) -> None:
+    g = torch.Generator().manual_seed(21)
+    ref = orbit(float(torch.rand(1, generator=g)) * 30.0, 15.0)
+    novel = orbit((torch.rand(3, generator=g) * 60 - 30).tolist(), (torch.rand(3, generator=g) * 360).tolist())
+    mesh = sphere(3, radius=0.6, device=device)
+    mesh = Mesh(mesh.vertices + 0.05 * torch.randn(mesh.vertices.shape, generator=g).to(device), mesh.faces)
+    mesh.vertices.requires_grad_(True)
+    one, many = render_mesh_groups(mesh, [ref, novel], 24, 28, position_colour)
+    assert one.rgb.shape[0] == 1 and many.rgb.shape[0] == 3
+    weights = torch.rand(4, 24, 28, 3, generator=g).to(device)
+    (torch.cat([one.rgb, many.rgb]) * weights).sum().backward()
+    grad, mesh.vertices.grad = mesh.vertices.grad, None
+    apart = [render_mesh(mesh, c, 24, 28, position_colour) for c in (ref, novel)]
+    (torch.cat([apart[0].rgb, apart[1].rgb]) * weights).sum().backward()
+    for got, want in zip((one, many), apart, strict=True):
+        for name in ("rgb", "opacity", "depth", "normal"):
+            assert torch.allclose(getattr(got, name), getattr(want, name), atol=2e-5)
+    assert torch.allclose(grad, mesh.vertices.grad, atol=1e-4) and float(grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match="do not add up"):
+        one.split([2])
+    with pytest.raises(ValueError, match="one near/far pair"):
+        Cameras.cat([ref, Cameras(novel.c2w, novel.fov_y, novel.elevation, novel.azimuth, novel.distance, near=0.5)])
+    with pytest.raises(ValueError, match="at least one"):
+        Cameras.cat([])
 
 
 class TinyField(nn.Module):

@@ -129,16 +129,17 @@ def laplacian_smoothness(mesh: Mesh, skip_boundary: bool = False) -> Tensor:
     dst = torch.cat([edges[:, 1], edges[:, 0]])
     degree = torch.zeros(mesh.num_vertices, dtype=v.dtype, device=v.device).index_add(0, src, torch.ones_like(
         src, dtype=v.dtype))
-    neighbour_sum = torch.zeros_like(v).index_add(0, src, v[dst])
+    neighbour_sum = torch.zeros_like(v).index_add(0, src, gather_rows(v, dst))
     delta = v - neighbour_sum / degree.clamp_min(1.0).unsqueeze(-1)
     keep = degree > 0
     if skip_boundary:
         on_boundary = torch.zeros_like(keep)
         on_boundary[edges[counts == 1].reshape(-1)] = True
         keep = keep & ~on_boundary
-    if not bool(keep.any()):
-        return _zero_loss(mesh)
-    return (delta[keep] ** 2).sum(-1).mean()
+    # A weighted mean over the kept vertices rather than a boolean selection of them: the selection
+    # would read its size on the host every step; no vertex kept gives 0 (with a graph).
+    squared = torch.where(keep, (delta ** 2).sum(-1), 0.0)
+    return squared.sum() / keep.sum().clamp_min(1).to(v.dtype)
 
 
 def normal_consistency(mesh: Mesh) -> Tensor:
@@ -151,5 +152,5 @@ def normal_consistency(mesh: Mesh) -> Tensor:
     if pairs is None or pairs.shape[0] == 0:
         return _zero_loss(mesh)
     n = mesh.face_normals(normalize=True)
-    cos = (n[pairs[:, 0]] * n[pairs[:, 1]]).sum(-1)
+    cos = (gather_rows(n, pairs[:, 0]) * gather_rows(n, pairs[:, 1])).sum(-1)
     return (1.0 - cos).mean()

@@ -13,7 +13,7 @@ the volume renderer's so NeRF and mesh stages feed the same losses.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -68,6 +68,18 @@ def render_mesh(mesh: Mesh, cameras: Cameras, height: int, width: int, colour_fn
     world-space normals; depth and normals are 0 on background pixels."""
     return render_shaded(mesh, cameras, height, width, lambda _frags, points: colour_fn(points),
                          background=background, config=config, shader_name="colour_fn")
+
+
+def render_mesh_groups(mesh: Mesh, groups: Sequence[Cameras], height: int, width: int, colour_fn: ColourFn,
+                       background: float | Tensor = 1.0, config: MeshRenderConfig | None = None) -> list[RenderOutput]:
+    """``render_mesh`` for several batches of cameras at one size in one pass, an output per batch.
+
+    The stages render their reference view and a step's novel views of the same mesh every step: one
+    rasterisation, one ``colour_fn`` call and one anti-aliasing pass for both launch half the
+    kernels of two renders (the DMTet and texture stages are launch-bound on CUDA). Views are
+    independent, so each output equals its own ``render_mesh`` up to float rounding."""
+    out = render_mesh(mesh, Cameras.cat(groups), height, width, colour_fn, background, config)
+    return out.split([len(g) for g in groups])
 
 
 def render_shaded(mesh: Mesh, cameras: Cameras, height: int, width: int, shader: Shader,

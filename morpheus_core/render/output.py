@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from torch import Tensor
@@ -17,6 +18,13 @@ class RenderOutput:
     opacity: Tensor
     depth: Tensor
     normal: Tensor
+
+    def split(self, sizes: Sequence[int]) -> list[RenderOutput]:
+        """Consecutive batches of ``sizes`` views (they must add up to the batch)."""
+        if sum(sizes) != self.rgb.shape[0]:
+            raise ValueError(f"sizes {list(sizes)} do not add up to the {self.rgb.shape[0]} rendered views")
+        parts = [t.split(list(sizes)) for t in (self.rgb, self.opacity, self.depth, self.normal)]
+        return [RenderOutput(*views) for views in zip(*parts, strict=True)]
 
     def rgb_chw(self) -> Tensor:
         """(B,3,H,W): the layout the guidance and the priors take."""

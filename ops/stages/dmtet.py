@@ -38,7 +38,7 @@ from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.geometry.winding import winding_number
 from morpheus_core.guidance_presets import DMTET_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
-from morpheus_core.render.mesh_renderer import render_mesh
+from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
@@ -139,9 +139,9 @@ class DMTetTask(GuidedTask):
         mesh = self.mesh()
         if mesh.num_faces == 0:
             raise BadStep("the DMTet surface is empty")
-        ref = render_mesh(mesh, self.target.camera, r, r, self.texture)
         cams = novel_cameras(cfg.n_views, generator, self.device)
-        novel = render_mesh(mesh, cams, r, r, self.texture).rgb_chw()
+        ref, novel_out = render_mesh_groups(mesh, [self.target.camera, cams], r, r, self.texture)
+        novel = novel_out.rgb_chw()
         m = mask_bce(ref.opacity_chw(), self.target.mask)
         lap, nc = laplacian_smoothness(mesh), normal_consistency(mesh)
         reg = self.dmtet.sdf_regulariser()

@@ -20,7 +20,7 @@ import torch
 from morpheus_core.devices import pick_device
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.guidance_presets import TEXTURE_GUIDANCE, GuidanceSettings
-from morpheus_core.render.mesh_renderer import render_mesh
+from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.guided_task import GuidedTask, RenderedStep
@@ -80,9 +80,9 @@ class TextureTask(GuidedTask):
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         r = self.cfg.resolution
-        ref = render_mesh(self.mesh, self.target.camera, r, r, self.texture)
         cams = novel_cameras(self.cfg.n_views, generator, self.device)
-        novel = render_mesh(self.mesh, cams, r, r, self.texture).rgb_chw()
+        ref, novel_out = render_mesh_groups(self.mesh, [self.target.camera, cams], r, r, self.texture)
+        novel = novel_out.rgb_chw()
         return RenderedStep(cams, novel, ref.rgb_chw(), novel.new_zeros(()))
 
     @torch.no_grad()
