@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One device call: CUDA test pass of the device-aware tests, then the render and prior benchmarks.
 # Run on the lent GPU machine from the repository root, carrying .whl (../shared/scripts/gpu-wheels.sh):
-#   bash benchmarks/gpu_session.sh [quick|priors|stages]   results -> benchmarks/results/*_h200.*, logs -> $OUT
+#   bash benchmarks/gpu_session.sh [quick|priors|stages|...]   results and logs -> $OUT/<mode>.tgz
 # quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
 # priors: the CUDA prior tests and the full prior benchmark only.
 # quality: benchmarks/quality.py at the gpu size (QUALITY_ARGS picks parts and scenes), results -> $OUT.
@@ -18,10 +18,14 @@
 #   h200_${AB_NAME}_{ref,new}; carry outputs/gpu_refs. The two tables come from one call, so their ratio holds.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
+# Everything a mode writes under $OUT comes back as one $OUT/<mode>.tgz: the device tool returns only a
+# few files per call, and a call that wrote more lost the rest. Unpack with `tar xzf <mode>.tgz`.
 set -uo pipefail
 mode=${1:-quick}
-out=${OUT:-/tmp/out}
+out=${OUT:-/tmp/out}/$mode.d
 mkdir -p "$out" /tmp/site
+trap 'tar czf "${OUT:-/tmp/out}/$mode.tgz" -C "$out" . && rm -rf "$out"' EXIT
+trap 'exit 143' TERM  # a timeout's SIGTERM still packs what was written
 pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 export PYTHONPATH=/tmp/site:. HF_HUB_OFFLINE=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt"
