@@ -78,7 +78,8 @@ def render_mesh_groups(mesh: Mesh, groups: Sequence[Cameras], height: int, width
     rasterisation, one ``colour_fn`` call and one anti-aliasing pass for both launch half the
     kernels of two renders (the DMTet and texture stages are launch-bound on CUDA). Views are
     independent, so each output equals its own ``render_mesh`` up to float rounding."""
-    out = render_mesh(mesh, Cameras.cat(groups), height, width, colour_fn, background, config)
+    cameras = Cameras.cat([g.to(device=mesh.vertices.device) for g in groups])
+    out = render_mesh(mesh, cameras, height, width, colour_fn, background, config)
     return out.split([len(g) for g in groups])
 
 
