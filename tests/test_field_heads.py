@@ -34,6 +34,16 @@ def heads(n_in: int, hidden: int, n_out: int, seed: int) -> tuple[nn.Sequential,
     return _mlp(n_in, hidden, 2, 1).to(DEVICE), _mlp(n_in, hidden, 2, n_out).to(DEVICE)
 
 
+def problem(n: int, n_in: int, hidden: int, grad_width: int,
+            seed: int) -> tuple[list, list, torch.Tensor, torch.Tensor]:
+    """Both heads' parameters, features (n, n_in) and an upstream gradient (n, grad_width)."""
+    density, albedo = heads(n_in, hidden, 3, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    x = torch.randn(n, n_in, generator=g).to(DEVICE)
+    grad = torch.randn(n, grad_width, generator=g).to(DEVICE)
+    return head_parameters(density), head_parameters(albedo), x, grad
+
+
 def assert_near(got: torch.Tensor | None, want: torch.Tensor | None, rel: float = REL) -> None:
     assert got is not None and want is not None
     got, want = got.detach(), want.detach()
@@ -87,11 +97,7 @@ def test_kernels_match_the_modules(n: int, n_in: int, hidden: int, n_out: int) -
 @pytest.mark.skipif(CUDA, reason="TF32 rounding on CUDA swamps the differences; the CPU interpreter computes in fp32")
 def test_gradients_match_finite_differences() -> None:
     """Central differences of the kernels' own forward (fp32, so a loose tolerance)."""
-    density, albedo = heads(8, 16, 3, seed=3)
-    g = torch.Generator().manual_seed(4)
-    x = torch.randn(40, 8, generator=g).to(DEVICE)
-    grad_a = torch.randn(40, 3, generator=g).to(DEVICE)
-    pd, pa = head_parameters(density), head_parameters(albedo)
+    pd, pa, x, grad_a = problem(40, 8, 16, 3, seed=3)
     _, _, grads_a = mlp_triton.heads_backward(x, pd, pa, None, grad_a, False)
     w2 = pa[2]
     eps = 1e-2
@@ -107,11 +113,7 @@ def test_gradients_match_finite_differences() -> None:
 
 
 def test_backward_is_deterministic_and_skips_unused_heads() -> None:
-    density, albedo = heads(32, 64, 3, seed=5)
-    g = torch.Generator().manual_seed(6)
-    x = torch.randn(500, 32, generator=g).to(DEVICE)
-    grad_d = torch.randn(500, 1, generator=g).to(DEVICE)
-    pd, pa = head_parameters(density), head_parameters(albedo)
+    pd, pa, x, grad_d = problem(500, 32, 64, 1, seed=5)
     first = mlp_triton.heads_backward(x, pd, pa, grad_d, None, True)
     second = mlp_triton.heads_backward(x, pd, pa, grad_d, None, True)
     assert first[2] is None and second[2] is None  # no albedo gradient: that head is not run
