@@ -92,16 +92,6 @@ def _tables(device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return _TABLE_CACHE[device]
 
 
-def _nonfinite_message(name: str, bad: int) -> str:
-    return (f"{name} has {bad} non-finite value(s) (NaN or ±inf); the optimisation diverged or the field it "
-            "came from is broken — lower the learning rate or restore the last checkpoint")
-
-
-def _require_finite(name: str, value: Tensor) -> None:
-    if not bool(torch.isfinite(value).all()):
-        raise NonFiniteFieldError(_nonfinite_message(name, int((~torch.isfinite(value)).sum())))
-
-
 def _sign_change_error(what: str, inside: int, total: int) -> EmptySurfaceError | None:
     if inside == 0:
         return EmptySurfaceError(f"{what} is ≥ 0 at all {total} grid vertices: everything is outside, "
@@ -110,12 +100,6 @@ def _sign_change_error(what: str, inside: int, total: int) -> EmptySurfaceError 
         return EmptySurfaceError(f"{what} is < 0 at all {total} grid vertices: everything is inside, "
                                  "there is no surface (the shape fills the whole grid)")
     return None
-
-
-def _require_sign_change(sdf: Tensor, what: str = "SDF") -> None:
-    error = _sign_change_error(what, int((sdf < 0).sum()), sdf.numel())
-    if error is not None:
-        raise error
 
 
 def require_surface(finite: dict[str, Tensor], signed: dict[str, Tensor]) -> None:
@@ -129,7 +113,9 @@ def require_surface(finite: dict[str, Tensor], signed: dict[str, Tensor]) -> Non
                          + [(t < 0).sum() for t in signed.values()]).tolist()
     for name, bad in zip(finite, counts[:len(finite)], strict=True):
         if bad:
-            raise NonFiniteFieldError(_nonfinite_message(name, int(bad)))
+            raise NonFiniteFieldError(f"{name} has {int(bad)} non-finite value(s) (NaN or ±inf); the optimisation "
+                                      "diverged or the field it came from is broken — lower the learning rate or "
+                                      "restore the last checkpoint")
     for (what, sdf), inside in zip(signed.items(), counts[len(finite):], strict=True):
         error = _sign_change_error(what, int(inside), sdf.numel())
         if error is not None:

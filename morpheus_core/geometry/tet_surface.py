@@ -22,8 +22,6 @@ from morpheus_core.gather import gather_rows
 from morpheus_core.geometry.marching_tets import (
     EmptySurfaceError,
     NonFiniteFieldError,
-    _require_finite,
-    _require_sign_change,
     extract_surface,
     interpolate_crossing,
     require_surface,
@@ -174,8 +172,7 @@ class DMTet(nn.Module):
     def init_from_sdf(self, sdf_fn: Callable[[Tensor], Tensor], chunk_size: int = 1 << 18) -> None:
         """Set the SDF from an analytic signed distance (negative inside); deformation reset to 0."""
         values = self._evaluate(sdf_fn, chunk_size, "sdf_fn")
-        _require_finite("sdf_fn output", values)
-        _require_sign_change(values, "sdf_fn")
+        require_surface({"sdf_fn output": values}, {"sdf_fn": values})
         self._warn_if_touching_boundary(values)
         self.sdf.copy_(values)
         self.deform.zero_()
