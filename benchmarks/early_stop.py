@@ -21,9 +21,12 @@ import statistics
 import sys
 import tempfile
 import time
+import traceback
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -62,10 +65,12 @@ def _steps(work: Path, schedule: Schedule, scene: str) -> dict[str, dict[str, in
 
 
 def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str, work: Path, eval_cfg: EvalConfig,
-        jobs: int, log: Path, variants: tuple[bool, ...] = (False, True)) -> list[dict[str, Any]]:
+        jobs: int, log: Path, variants: tuple[bool, ...] = (False, True)) -> tuple[list[dict[str, Any]], list[str]]:
     """Every cell not yet in ``log``, ``jobs`` at a time; each finished record is appended to ``log``
     (JSON lines) at once, so a run cut short by a time limit keeps what it finished and the next
-    run with the same log goes on from there."""
+    run with the same log goes on from there. A cell that raises is reported (its traceback on
+    stderr) and left out of ``log``, so the next run retries it; the others go on. Returns the
+    records and the failed cells' labels."""
     by_name = {s.name: s for s in make_scenes(0, scenes)}
     for scene in by_name.values():  # written once here: the workers would race on the same photo
         photo_path(scene, work / "photos")
@@ -76,8 +81,16 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
     log.parent.mkdir(parents=True, exist_ok=True)
     where = machine(device)
 
-    def finish(cell: tuple[Schedule, int, bool, str], result: list[dict[str, Any]]) -> None:
+    failed: list[str] = []
+
+    def finish(cell: tuple[Schedule, int, bool, str], outcome: Callable[[], list[dict[str, Any]]]) -> None:
         base, seed, early, name = cell
+        try:
+            result = outcome()
+        except Exception:  # one broken cell must not cost the records of the cells still running
+            failed.append(f"{_variant(base, seed, early).label} {name}")
+            print(f"FAILED {failed[-1]}:\n{traceback.format_exc()}", file=sys.stderr, flush=True)
+            return
         rec = {**result[0], "base": base.label, "seed": seed, "early_stop": early, "machine": where,
                "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
                "steps": _steps(work, _variant(base, seed, early), name)}
@@ -89,15 +102,15 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
             for base, seed, early, name in cells]
     if jobs <= 1:
         for cell, a in zip(cells, args, strict=True):
-            finish(cell, run_error_time(*a))
-        return records
+            finish(cell, partial(run_error_time, *a))
+        return records, failed
     threads = max(1, torch.get_num_threads() // jobs)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_shared_gpu_worker,
                              initargs=(threads,)) as pool:
         futures = {pool.submit(run_error_time, *a): cell for cell, a in zip(cells, args, strict=True)}
         for future in as_completed(futures):
-            finish(futures[future], future.result())
-    return records
+            finish(futures[future], future.result)
+    return records, failed
 
 
 def _shared_gpu_worker(threads: int) -> None:
@@ -205,16 +218,19 @@ def main(argv: list[str] | None = None) -> int:
     eval_cfg = SIZES["gpu" if args.device == "cuda" else "cpu"].eval
     name = args.name or f"early_stop_{'h200' if args.device == 'cuda' else 'cpu'}"
     start = time.perf_counter()
+    failed: list[str] = []
     if args.from_records is not None:
         records = [json.loads(line) for f in args.from_records for line in f.read_text().splitlines() if line]
         seeds = sorted({r["seed"] for r in records})
         scenes = list(dict.fromkeys(r["scene"] for r in records))
     else:
-        records = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
-                      args.results / f"{name}.records.jsonl", variants)
-        if len(variants) == 1:
+        records, failed = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
+                              args.results / f"{name}.records.jsonl", variants)
+        if failed:
+            print(f"{len(failed)} cells failed (tracebacks above), left out: {failed}", file=sys.stderr)
+        if len(variants) == 1 or not records:
             print(f"{len(records)} records in {args.results / f'{name}.records.jsonl'}")
-            return 0
+            return 1 if failed else 0
     rows = summarise(records)
     payload = {"title": "Early stopping on and off", "machine": records[0]["machine"], "date": records[0]["date"],
                "command": "python -m benchmarks.early_stop " + " ".join(argv if argv is not None else sys.argv[1:]),
@@ -225,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     _write(args.results, name, payload, markdown(rows, seeds))
     print(json.dumps([{k: r[k] for k in ("schedule", "scene", "fixed_novel_psnr", "early_novel_psnr",
                                           "fixed_wall_s", "early_wall_s")} for r in rows], indent=1))
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

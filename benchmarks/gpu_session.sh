@@ -16,6 +16,14 @@
 # ab: paper_speed.py (AB_ARGS) in this tree and in a reference tree made by reversing AB_PATCH (a diff of this
 #   tree against the reference, e.g. `git diff HEAD -- morpheus_core > ab.patch`), reference first; tags
 #   h200_${AB_NAME}_{ref,new}; carry outputs/gpu_refs. The two tables come from one call, so their ratio holds.
+#   AB_ORDER (default "ref new") sets which runs first. Run both orders (two calls) and join them with
+#   benchmarks/speed_ab.py: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever
+#   setting it ran (benchmarks/results/vae_precision_h200.md).
+# es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
+#   ES_PATCH, both at once; records named ${ES_NAME}_{ref,new}; compare them with benchmarks.records_ab.
+# variants: the CUDA prior tests, then paper_speed.py once per VARIANTS entry "name:key=value,key=value" (config
+#   overrides, e.g. "vae32:priors.vae_dtype=float32 vaeauto:"), with V_ARGS; tags h200_<name>; carry outputs/gpu_refs.
+#   All variants run in one call, so their ratios hold. V_TESTS=0 leaves the tests out.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 # Everything a mode writes under $OUT comes back as one $OUT/<mode>.tgz: the device tool returns only a
@@ -41,6 +49,18 @@ if [ "$mode" = early_stop ]; then
   echo "early_stop exit $?" >> "$out/early_stop.log"
   exit 0
 fi
+if [ "$mode" = es_ab ]; then
+  rm -rf /tmp/es_ref && cp -r . /tmp/es_ref && patch -d /tmp/es_ref -R -p1 -s < "${ES_PATCH:?a diff of this tree against the reference}"
+  for side in ref new; do
+    dir=.; [ "$side" = ref ] && dir=/tmp/es_ref
+    (cd "$dir" && timeout "${ES_TIMEOUT:-540}" python -m benchmarks.early_stop --device cuda --jobs "${ES_JOBS:-7}" \
+      --schedules "${ES_SCHEDULES:-bench-cpu}" --scenes "${ES_SCENES:-mug,bottle,box,vase,sneaker,lamp,chair,figure}" \
+      --variants early --seeds "${ES_SEEDS:-0,1,2}" --work "/tmp/es_$side" --results "$out" \
+      --name "${ES_NAME:-es_ab}_$side" > "$out/early_stop_$side.log" 2>&1; echo "exit $?" >> "$out/early_stop_$side.log") &
+  done
+  wait
+  exit 0
+fi
 if [ "$mode" = heads ]; then
   MORPHEUS_TEST_DEVICE=cuda timeout 150 python -m pytest -q -p no:cacheprovider tests/test_field_heads.py \
     tests/test_cuda_volume.py tests/test_raster.py tests/test_mesh_renderer.py tests/test_marching_tets.py \
@@ -56,11 +76,27 @@ if [ "$mode" = heads ]; then
 fi
 if [ "$mode" = ab ]; then
   rm -rf /tmp/ab_ref && cp -r . /tmp/ab_ref && patch -d /tmp/ab_ref -R -p1 -s < "${AB_PATCH:?a diff of this tree against the reference}"
-  for side in ref new; do
+  for side in ${AB_ORDER:-ref new}; do
     dir=.; [ "$side" = ref ] && dir=/tmp/ab_ref
     (cd "$dir" && timeout "${AB_TIMEOUT:-200}" python benchmarks/paper_speed.py --device cuda --mode after \
       --tag "h200_${AB_NAME:-ab}_$side" --store outputs/gpu_refs --out "$out" ${AB_ARGS:-}) > "$out/ab_$side.log" 2>&1
     echo "exit $?" >> "$out/ab_$side.log"
+  done
+  exit 0
+fi
+if [ "$mode" = variants ]; then
+  if [ "${V_TESTS:-1}" = 1 ]; then
+    MORPHEUS_TEST_DEVICE=cuda timeout "${V_TEST_TIMEOUT:-90}" python -m pytest -q -p no:cacheprovider \
+      tests/test_cuda_priors.py tests/test_prior_runtime.py > "$out/pytest_cuda_variants.log" 2>&1
+    echo "pytest exit $?" >> "$out/pytest_cuda_variants.log"
+  fi
+  for v in ${VARIANTS:?name:key=value,... entries}; do
+    name=${v%%:*}; sets=()
+    IFS=, read -ra kvs <<< "${v#*:}"
+    for kv in "${kvs[@]}"; do [ -n "$kv" ] && sets+=(--set "$kv"); done
+    timeout "${V_TIMEOUT:-200}" python benchmarks/paper_speed.py --device cuda --mode after --tag "h200_$name" \
+      --store outputs/gpu_refs --out "$out" "${sets[@]}" ${V_ARGS:-} > "$out/variant_$name.log" 2>&1
+    echo "exit $?" >> "$out/variant_$name.log"
   done
   exit 0
 fi

@@ -2,7 +2,10 @@
 
 Frozen networks (UNets, ControlNet, encoders) are cast to ``dtype``; the SD-family VAE stays in
 float32 under float16 because its activations are known to overflow there (bfloat16 has the
-range, so it is used as is). Trainable LoRA weights stay float32 and meet half-precision weights
+range, so it is used as is; ``vae_dtype`` sets it apart). The official code runs it in float16.
+On the H200 a bfloat16 VAE did not change the stages' step times beyond the run-to-run noise
+(``benchmarks/results/vae_precision_h200.md``), so float32 stays the default.
+Trainable LoRA weights stay float32 and meet half-precision weights
 under autocast. ``accel`` picks how the networks' forwards run: eager, replayed from CUDA graphs
 captured per input shape (forward and backward; the Zero123 forward is launch-bound: DESIGN.md §7),
 or ``torch.compile``.
@@ -35,8 +38,9 @@ class PriorRuntime:
     accel: Accel = "eager"
 
     def __post_init__(self) -> None:
-        if self.dtype not in (torch.float32, *_HALF):
-            raise ValueError(f"prior dtype must be float32, float16 or bfloat16, got {self.dtype}")
+        for name, dtype in (("dtype", self.dtype), ("vae_dtype", self.vae_dtype or torch.float32)):
+            if dtype not in (torch.float32, *_HALF):
+                raise ValueError(f"prior {name} must be float32, float16 or bfloat16, got {dtype}")
         if self.accel not in ("eager", "cudagraph", "compile"):
             raise ValueError(f"accel must be eager, cudagraph or compile, got {self.accel!r}")
         if self.accel == "cudagraph" and torch.device(self.device).type != "cuda":
@@ -56,6 +60,7 @@ class PriorRuntime:
 
     @property
     def vae_precision(self) -> torch.dtype:
+        """``vae_dtype`` where set; else the priors' dtype, except float32 under float16 (see the module doc)."""
         if self.vae_dtype is not None:
             return self.vae_dtype
         return torch.float32 if self.dtype == torch.float16 else self.dtype

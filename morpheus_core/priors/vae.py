@@ -34,7 +34,8 @@ class LatentCodec:
     def _posterior_mean(self, images: Tensor) -> Tensor:
         x = resize_batch(composite_batch_on_white(images), self.resolution)
         x = (x * 2.0 - 1.0).to(device=self.runtime.torch_device, dtype=self.vae.dtype)
-        return self._encode(x)
+        # float32 out, whatever the VAE runs in: the guidance's frequency split acts on these latents.
+        return self._encode(x).float()
 
     def encode(self, images: Tensor) -> Tensor:
         """Renders B×3×H×W in [0, 1] → latents × scaling factor (the diffusion space); differentiable."""

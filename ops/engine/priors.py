@@ -50,6 +50,9 @@ class PriorsConfig:
     """Folder holding the prior weights; None: ``$MORPHEUS_MODELS``, else ``~/.cache/morpheus3d/models``."""
     dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
     """Precision of the frozen prior networks; ``auto``: float16 on CUDA (as the paper), float32 elsewhere."""
+    vae_dtype: Literal["auto", "float32", "float16", "bfloat16"] = "auto"
+    """Precision of the VAE that encodes every step's renders; ``auto``: float32 under float16 priors (the SD
+    VAE overflows in float16), else ``dtype``. bfloat16 keeps float32's range."""
     accel: Literal["auto", "eager", "cudagraph", "compile"] = "auto"
     """Frozen forwards: eager, cudagraph or compile; auto: CUDA graphs on CUDA (68 → 20 ms a Zero123 step, H200)."""
     image2d_resolution: int = 512
@@ -84,9 +87,9 @@ class PriorsConfig:
         if accel == "auto":
             accel = "cudagraph" if torch.device(device).type == "cuda" else "eager"
         rt = PriorRuntime.for_device(device, accel)
-        if self.dtype == "auto":
-            return rt
-        return PriorRuntime(rt.device, getattr(torch, self.dtype), channels_last=rt.channels_last, accel=rt.accel)
+        dtype = rt.dtype if self.dtype == "auto" else getattr(torch, self.dtype)
+        vae = None if self.vae_dtype == "auto" else getattr(torch, self.vae_dtype)
+        return PriorRuntime(rt.device, dtype, vae, channels_last=rt.channels_last, accel=rt.accel)
 
 
 @dataclass(frozen=True)
