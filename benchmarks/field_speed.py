@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.timing import sync_device
 from morpheus_core.cameras import sample_orbit
 from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
 from morpheus_core.geometry.field_heads import evaluate_heads
@@ -38,22 +39,17 @@ from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, Volu
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def timed(fn: Callable[[], None], device: torch.device, repeats: int, warmup: int) -> dict[str, float]:
     for _ in range(warmup):
         fn()
-    _sync(device)
+    sync_device(device)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
-        _sync(device)
+        sync_device(device)
         times.append((time.perf_counter() - start) * 1000)
     row = {"median_ms": statistics.median(times), "min_ms": min(times), "repeats": repeats}
     if device.type == "cuda":

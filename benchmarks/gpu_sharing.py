@@ -40,7 +40,8 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write_text
-from benchmarks.paper_speed import STAGES, Rig, build_rig, measure_stage, prepare_references, sync_device
+from benchmarks.paper_speed import STAGES, Rig, build_rig, measure_stage, prepare_references
+from benchmarks.timing import sync_device
 from ops.config.presets import preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import LoopConfig, run_loop

@@ -37,6 +37,7 @@ import torch
 from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import _build
+from benchmarks.timing import sync_device
 from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
 from morpheus_core.geometry.field_heads import DEFAULT as HEADS_DEFAULT
@@ -59,11 +60,6 @@ STAGES = ("nerf", "dmtet", "texture")
 # The paper on an RTX 4090 (DESIGN.md §7): NeRF 26 + DMTet 14 + texture 72 minutes.
 PAPER_MIN = {"nerf": 26.0, "dmtet": 14.0, "texture": 72.0}
 MODES = {"before": {"accel": "eager", "compile": "0"}, "after": {"accel": "cudagraph", "compile": "1"}}
-
-
-def sync_device(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
 
 
 def prepare_references(store_root: Path, cfg: PipelineConfig) -> list[Path]:

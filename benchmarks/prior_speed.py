@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from assets_store.atomic import atomic_write_text
+from benchmarks.timing import sync_device
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
 from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage1_dmtet, stage2_texture
@@ -81,11 +82,6 @@ def _build(scale: str, runtime: PriorRuntime, n_objects: int, with_2d: bool, see
     return Rig(zero123, image2d, loras)
 
 
-def _sync(device: str) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-
-
 def _step_fn(kind: str, rig: Rig, batch: int, device: str, schedule: NoiseSchedule):
     ids = [f"obj{i}" for i in range(batch)]
     g = torch.Generator().manual_seed(1)
@@ -120,10 +116,10 @@ def measure(kind: str, rig: Rig, batch: int, device: str, warmup: int, steps: in
         step(i)
     times = []
     for i in range(steps):
-        _sync(device)
+        sync_device(device)
         t0 = time.perf_counter()
         step(warmup + i)
-        _sync(device)
+        sync_device(device)
         times.append((time.perf_counter() - t0) * 1e3)
     med = statistics.median(times)
     row = {"median_ms": round(med, 2), "ms_per_object": round(med / batch, 2), "min_ms": round(min(times), 2),
@@ -222,7 +218,7 @@ def profile_table(kind: str, rig: Rig, batch: int, device: str, rows: int = 30) 
     with profile(activities=activities) as prof:
         for i in range(3):
             step(1 + i)
-        _sync(device)
+        sync_device(device)
     key = "self_cuda_time_total" if torch.device(device).type == "cuda" else "self_cpu_time_total"
     return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=60)
 

@@ -21,17 +21,13 @@ import torch
 import trimesh
 
 from assets_store.atomic import atomic_write_text
+from benchmarks.timing import sync_device
 from morpheus_core.cameras import OrbitConfig, sample_orbit
 from morpheus_core.render.antialias import antialias, silhouette_crossings
 from morpheus_core.render.raster import RasterConfig, interpolate, rasterize
 
 # Icosphere subdivisions: 20·4^s faces — 6 → 81,920 (the "~100k" case), 7 → 327,680 ("~300k").
 SUBDIVISIONS = {"100k": 6, "300k": 7}
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def _scene(subdivisions: int, batch: int, device: torch.device):
@@ -61,10 +57,10 @@ def _time(fn, device: torch.device, repeats: int) -> list[float]:
     fn()  # warm-up (allocator, lazy initialisation)
     times = []
     for _ in range(repeats):
-        _sync(device)
+        sync_device(device)
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        sync_device(device)
         times.append((time.perf_counter() - t0) * 1e3)
     return times
 

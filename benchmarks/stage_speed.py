@@ -24,6 +24,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from assets_store.store import Store
+from benchmarks.timing import sync_device
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.texture import TextureField
 from ops.config.presets import preset
@@ -39,11 +40,6 @@ from ops.stages.texture import TextureTask
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-
-
-def _sync(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
 
 
 class _OpCounter(TorchDispatchMode):
@@ -69,10 +65,10 @@ def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.G
     run_loop(task, LoopConfig(warmup, log_every=10_000, grad_clip=None), gen, "warmup")  # type: ignore[arg-type]
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
-    _sync(dev)
+    sync_device(dev)
     start = time.perf_counter()
     res = run_loop(task, LoopConfig(steps, log_every=10_000, grad_clip=None), gen, "timed")  # type: ignore[arg-type]
-    _sync(dev)
+    sync_device(dev)
     ms = (time.perf_counter() - start) / steps * 1000
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else float("nan")
     return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped,
