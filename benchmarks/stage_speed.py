@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import sys
 import tempfile
 import time
+from collections import Counter
 from datetime import date
 from pathlib import Path
 from typing import Any
@@ -23,6 +26,7 @@ from typing import Any
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.timing import sync_device
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
@@ -42,26 +46,51 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 
 
+_OUR_CODE = (f"{os.sep}morpheus_core{os.sep}", f"{os.sep}ops{os.sep}")
+
+
 class _OpCounter(TorchDispatchMode):
     """Counts the aten operators dispatched (backward and optimiser included): on a GPU each is a
-    kernel launch or a view, so the count tracks the host work of launch-bound stages on any device."""
+    kernel launch or a view, so the count tracks the host work of launch-bound stages on any device.
+    Each is charged to the innermost line of our code that issued it, so the sites to work on come out
+    ranked. The backward's operators go to the line that called ``backward()`` where the autograd
+    engine runs in that thread (CPU), else to "backward" (a device thread has no Python caller)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.calls = 0
+        self.sites: Counter[str] = Counter()
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         self.calls += 1
+        frame = sys._getframe(1)
+        while frame is not None and not any(part in frame.f_code.co_filename for part in _OUR_CODE):
+            frame = frame.f_back
+        site = "backward" if frame is None else \
+            f"{Path(frame.f_code.co_filename).relative_to(ROOT)}:{frame.f_lineno}"
+        self.sites[site] += 1
         return func(*args, **(kwargs or {}))
 
 
-def _ops_per_step(task: object, gen: torch.Generator) -> int:
-    with _OpCounter() as counter:
-        run_loop(task, LoopConfig(1, log_every=10_000, grad_clip=None), gen, "ops")  # type: ignore[arg-type]
-    return counter.calls
+def _ops_per_step(task: object, gen: torch.Generator, sites: int, extra: int = 2) -> dict[str, Any]:
+    """Operators of a steady-state step: a loop of 2 + ``extra`` steps minus a loop of 2, over ``extra``.
+    Both loops pay the same set-up (the last-good-state copy), the same first two steps (a loop's
+    second step still issues extra operators) and one log row at their last step, so those cancel
+    and only the steady-state steps in between remain."""
+    counters = []
+    for steps in (2, 2 + extra):
+        with _OpCounter() as counter:
+            run_loop(task, LoopConfig(steps, log_every=10_000, grad_clip=None), gen, "ops")  # type: ignore[arg-type]
+        counters.append(counter)
+    short, long = counters
+    per_step = long.sites.copy()
+    per_step.subtract(short.sites)
+    top = [(site, n / extra) for site, n in per_step.most_common(sites) if n > 0]
+    return {"aten_ops_per_step": (long.calls - short.calls) / extra, "op_sites": dict(top)}
 
 
-def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.Generator) -> dict[str, float]:
+def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.Generator,
+          sites: int = 0) -> dict[str, Any]:
     run_loop(task, LoopConfig(warmup, log_every=10_000, grad_clip=None), gen, "warmup")  # type: ignore[arg-type]
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
@@ -72,10 +101,11 @@ def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.G
     ms = (time.perf_counter() - start) / steps * 1000
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else float("nan")
     return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped,
-            "aten_ops_per_step": _ops_per_step(task, gen)}
+            **_ops_per_step(task, gen, sites)}
 
 
-def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path, store_root: Path) -> dict:
+def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path, store_root: Path,
+            sites: int = 0) -> dict:
     cfg = preset(preset_name, [f"device={device}", "priors.kind=proxy"])
     dev = torch.device(device)
     key = photo.name
@@ -89,7 +119,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
 
     suite = build_suite(cfg.priors, dev, ref_dir, key, ("3d",))
     nerf = NerfTask(cfg.nerf, ReferenceTarget.load(ref_dir, cfg.nerf.resolution, dev), suite, dev, gen)
-    rows["nerf"] = _time(nerf, steps, warmup, dev, gen) | {"resolution": cfg.nerf.resolution,
+    rows["nerf"] = _time(nerf, steps, warmup, dev, gen, sites) | {"resolution": cfg.nerf.resolution,
                                                                 "samples": cfg.nerf.render.n_samples}
     work = Path(tempfile.mkdtemp())
     save_module(work / NERF_FILE, nerf.field, cfg.nerf.model, {"occupancy": nerf.occupancy.density})
@@ -101,7 +131,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     init_from_nerf(dmtet, texture, work, cfg.dmtet, dev, gen)
     dtask = DMTetTask(cfg.dmtet, ReferenceTarget.load(ref_dir, cfg.dmtet.resolution, dev), suite, dmtet, texture, dev)
     faces = dtask.mesh().num_faces
-    rows["dmtet"] = _time(dtask, steps, warmup, dev, gen) | {"resolution": cfg.dmtet.resolution, "grid": grid,
+    rows["dmtet"] = _time(dtask, steps, warmup, dev, gen, sites) | {"resolution": cfg.dmtet.resolution, "grid": grid,
                                                              "faces": faces}
 
     mesh = dtask.mesh()
@@ -109,7 +139,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     suite2 = build_suite(cfg.priors, dev, ref_dir, key, cfg.texture.guidance.roles, cfg.texture.guidance.vsd_roles)
     ttask = TextureTask(cfg.texture, ReferenceTarget.load(ref_dir, cfg.texture.resolution, dev), suite2, mesh,
                         texture, dev)
-    rows["texture"] = _time(ttask, steps, warmup, dev, gen) | {"resolution": cfg.texture.resolution,
+    rows["texture"] = _time(ttask, steps, warmup, dev, gen, sites) | {"resolution": cfg.texture.resolution,
                                                                       "faces": faces}
     schedule = {"nerf": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
                 "texture": cfg.texture.loop.steps}
@@ -135,6 +165,11 @@ def to_markdown(res: dict) -> str:
         lines.append(f"| {stage} | {size} | {r['ms_per_step']} | {r.get('aten_ops_per_step', '–')} | {r['peak_gib']} | "
                      f"{r['schedule_steps']} | {r['projected_min']} |")
     lines += ["", f"Projected whole schedule without the priors: **{res['projected_total_min_without_priors']} min**."]
+    for stage, r in res["stages"].items():
+        if r.get("op_sites"):
+            lines += ["", f"aten operators per {stage} step by the line of our code that issued them:", "",
+                      "| ops | site |", "|---:|---|"]
+            lines += [f"| {n} | `{site}` |" for site, n in r["op_sites"].items()]
     return "\n".join(lines) + "\n"
 
 
@@ -147,13 +182,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--photo", type=Path, default=ROOT / "examples" / "photos" / "mug.jpg")
     p.add_argument("--store", type=Path, help="where the reference is prepared (default: a temp folder)")
     p.add_argument("--tag", default="cpu")
+    p.add_argument("--sites", type=int, default=0, metavar="N",
+                   help="list the N lines of our code that issue the most aten operators per step, per stage")
     args = p.parse_args(argv)
     res = measure(args.preset, args.device, args.steps, args.warmup, args.photo,
-                  args.store or Path(tempfile.mkdtemp()))
+                  args.store or Path(tempfile.mkdtemp()), args.sites)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"stage_speed_{args.preset}_{args.tag}"
-    stem.with_suffix(".json").write_text(json.dumps(res, indent=2) + "\n")
-    stem.with_suffix(".md").write_text(to_markdown(res))
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(res, indent=2) + "\n")
+    atomic_write_text(stem.with_suffix(".md"), to_markdown(res))
     print(to_markdown(res))
     return 0
 
