@@ -38,25 +38,30 @@ pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 export PYTHONPATH=/tmp/site:. HF_HUB_OFFLINE=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv > "$out/gpu.txt"
 python -c "import torch, diffusers, transformers, peft; print(torch.__version__, diffusers.__version__, transformers.__version__, peft.__version__)" >> "$out/gpu.txt"
+reference_tree() {  # $1: where; $2: a diff of this tree against the reference, reversed there
+  rm -rf "$1" && cp -r . "$1" && patch -d "$1" -R -p1 -s < "$2"
+}
+early_stop_run() {  # $1: records name, $2: work folder, $3: log; ES_* pick the cells
+  timeout "${ES_TIMEOUT:-540}" python -m benchmarks.early_stop --device cuda --jobs "${ES_JOBS:-8}" \
+    --scenes "${ES_SCENES:-mug,bottle,box,vase,sneaker,lamp,chair,figure}" --seeds "${ES_SEEDS:-0,1,2}" \
+    --work "$2" --results "$out" --name "$1" "${@:4}" > "$3" 2>&1
+  echo "early_stop exit $?" >> "$3"
+}
 if [ "$mode" = early_stop ]; then
   # ES_SCHEDULES / ES_SCENES / ES_JOBS pick the cells; records are appended as they finish, so a
   # call cut short by its time limit still brings back what it finished (--from-records merges).
   name=${ES_NAME:-early_stop_h200}
   [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"  # go on from it
-  timeout "${ES_TIMEOUT:-540}" python -m benchmarks.early_stop --device cuda --jobs "${ES_JOBS:-8}" \
-    --schedules "${ES_SCHEDULES:-draft}" --scenes "${ES_SCENES:-mug,bottle,box,vase,sneaker,lamp,chair,figure}" \
-    --seeds 0,1,2 --work /tmp/es --results "$out" --name "$name" > "$out/early_stop.log" 2>&1
-  echo "early_stop exit $?" >> "$out/early_stop.log"
+  early_stop_run "$name" /tmp/es "$out/early_stop.log" --schedules "${ES_SCHEDULES:-draft}"
   exit 0
 fi
 if [ "$mode" = es_ab ]; then
-  rm -rf /tmp/es_ref && cp -r . /tmp/es_ref && patch -d /tmp/es_ref -R -p1 -s < "${ES_PATCH:?a diff of this tree against the reference}"
+  reference_tree /tmp/es_ref "${ES_PATCH:?a diff of this tree against the reference}"
+  export ES_JOBS=${ES_JOBS:-7}  # two processes of runs share the GPU
   for side in ref new; do
     dir=.; [ "$side" = ref ] && dir=/tmp/es_ref
-    (cd "$dir" && timeout "${ES_TIMEOUT:-540}" python -m benchmarks.early_stop --device cuda --jobs "${ES_JOBS:-7}" \
-      --schedules "${ES_SCHEDULES:-bench-cpu}" --scenes "${ES_SCENES:-mug,bottle,box,vase,sneaker,lamp,chair,figure}" \
-      --variants early --seeds "${ES_SEEDS:-0,1,2}" --work "/tmp/es_$side" --results "$out" \
-      --name "${ES_NAME:-es_ab}_$side" > "$out/early_stop_$side.log" 2>&1; echo "exit $?" >> "$out/early_stop_$side.log") &
+    (cd "$dir" && early_stop_run "${ES_NAME:-es_ab}_$side" "/tmp/es_$side" "$out/early_stop_$side.log" \
+      --schedules "${ES_SCHEDULES:-bench-cpu}" --variants early) &
   done
   wait
   exit 0
@@ -75,7 +80,7 @@ if [ "$mode" = heads ]; then
   exit 0
 fi
 if [ "$mode" = ab ]; then
-  rm -rf /tmp/ab_ref && cp -r . /tmp/ab_ref && patch -d /tmp/ab_ref -R -p1 -s < "${AB_PATCH:?a diff of this tree against the reference}"
+  reference_tree /tmp/ab_ref "${AB_PATCH:?a diff of this tree against the reference}"
   for side in ${AB_ORDER:-ref new}; do
     dir=.; [ "$side" = ref ] && dir=/tmp/ab_ref
     (cd "$dir" && timeout "${AB_TIMEOUT:-200}" python benchmarks/paper_speed.py --device cuda --mode after \
