@@ -116,9 +116,11 @@ def test_a_lost_blob_is_found_and_an_outline_ring_is_not(seed: int) -> None:
     assert compare_part_silhouettes(reference, shrunk, opening=0).missing_share_max > 0.0
 
     # Thinner by three pixels all around: a thick shell, which only a margin of 3 px forgives;
-    # the margin forgives no lost disc (it lies further than that from what was kept).
+    # the margin forgives no lost disc (it lies further than that from what was kept). How much of
+    # the shell is found depends on the discs: the 3×3 opening breaks a digital 3-px ring into pieces
+    # whose largest was as little as 5.5 % of the silhouette over 400 seeds, so only "found" is asserted.
     thinner = torch.stack([_discs((size, size), [(y, x, r - 3) for y, x, r in d]) for d in two])
-    assert compare_part_silhouettes(reference, thinner).missing_share_max > 0.1, f"seed {seed}"
+    assert compare_part_silhouettes(reference, thinner).missing_share_max > 0.0, f"seed {seed}"
     assert compare_part_silhouettes(reference, thinner, margin=3).missing_share_max == 0.0, f"seed {seed}"
     assert compare_part_silhouettes(reference, kept, margin=3).missing_share_max > 0.1, f"seed {seed}"
 
