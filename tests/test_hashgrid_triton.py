@@ -97,6 +97,46 @@ def test_stacked_objects_match_eager() -> None:
     compare(integer_scales(4), (torch.arange(4) < 3).float(), n=200, seed=4, objects=2)
 
 
+def clustered(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, _LevelTables]:
+    """Points in runs that share cells, as the NeRF stage's samples come: sorted along x (neighbours
+    close), runs of one repeated point (one across the 128-lane block edge, one up to the last point,
+    in the cell at the origin, where the kernel's masked loads past the end also land)."""
+    x, table, tables = inputs(config, n, seed)
+    x = x[torch.argsort(x[:, 0])]
+    x[n - 20:] = 0.01
+    for start, stop in ((5, 40), (110, 150)):
+        x[start:stop] = x[start]
+    return x, table, tables
+
+
+@pytest.mark.parametrize("mode", ["none", "dense", "all"])
+def test_run_reduction_matches_eager_on_clustered_points(mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every ``RUN_REDUCTION``: runs summed before the atomics give eager's table gradient, also where a
+    run of one cell holds points of two objects (their rows differ: the run must split there)."""
+    monkeypatch.setattr(hashgrid_triton, "RUN_REDUCTION", mode)
+    config = mixed(2)
+    n, objects = 290, 2
+    x, table, tables = clustered(config, n, 20)
+    table = torch.cat([table, torch.randn(table.shape, generator=torch.Generator().manual_seed(21)).to(DEVICE)])
+    base = ((torch.arange(n) // 7) % objects * (table.shape[0] // objects)).to(DEVICE)  # switches inside runs
+    mask = (torch.arange(config.n_levels) < 4).float().to(DEVICE)
+    grad_out = torch.randn(n, config.output_dim, generator=torch.Generator().manual_seed(22)).to(DEVICE)
+    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True, base)
+    got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True, base)
+    assert_near(got_gx, want_gx, 2e-6)
+    assert_near(got_gt, want_gt, 2e-6)
+    _, only_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, False, True)
+    assert_near(only_gt, _encode_backward(x, table, tables, mask, grad_out, False, True)[1], 2e-6)
+
+
+def test_unknown_run_reduction_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(hashgrid_triton, "RUN_REDUCTION", "dens")
+    x, table, tables = inputs(mixed(2), 8, 23)
+    mask = torch.ones(5, device=DEVICE)
+    with pytest.raises(ValueError, match="RUN_REDUCTION"):
+        hashgrid_triton.encode_backward(x, table, tables, mask, torch.ones(8, 10, device=DEVICE), False, True)
+
+
 @pytest.mark.parametrize(("make", "features"), [(mixed, 2), (mixed, 4), (integer_scales, 2), (integer_scales, 4),
                                                 (mixed, 1), (integer_scales, 8)])
 def test_forward_and_gradients_match_eager(make, features: int) -> None:

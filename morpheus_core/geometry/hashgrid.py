@@ -11,14 +11,14 @@ gradient is the analytic derivative of the trilinear weights — the texture fie
 pass colour gradients on to mesh vertices.
 
 Kernels: on CUDA the encode runs as fused Triton kernels (``hashgrid_triton``: one gather pass per
-level in registers, table gradient by atomics, the same arithmetic as the code here), when Triton
-imports; otherwise (and for float64 inputs) the pure tensor functions below, compiled on CUDA
-(``compiled_for``). The CPU always runs the eager code below, unchanged. The environment variable
-``MORPHEUS_HASHGRID`` picks: ``auto`` (the default: Triton on CUDA where available), ``triton``
-(insist: an error where Triton cannot run, e.g. a CPU without ``TRITON_INTERPRET=1``), ``eager``
-(the tensor code everywhere: debugging, the benchmarks' "before"). It is an environment variable,
-not a config field, because it does not change results beyond float rounding and a config field
-would change the config hashes of existing stores.
+level in registers, table gradient by atomics, one per run of points in a cell on the dense levels,
+the same arithmetic as the code here), when Triton imports; otherwise (and for float64 inputs) the
+pure tensor functions below, compiled on CUDA (``compiled_for``). The CPU always runs the eager code
+below, unchanged. The environment variable ``MORPHEUS_HASHGRID`` picks: ``auto`` (the default:
+Triton on CUDA where available), ``triton`` (insist: an error where Triton cannot run, e.g. a CPU
+without ``TRITON_INTERPRET=1``), ``eager`` (the tensor code everywhere: debugging, the benchmarks'
+"before"). It is an environment variable, not a config field, because it does not change results
+beyond float rounding and a config field would change the config hashes of existing stores.
 """
 
 from __future__ import annotations

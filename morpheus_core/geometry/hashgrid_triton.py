@@ -10,13 +10,18 @@ eager code's order); the level mask multiplies features and gradients.
 Where the eager code materialises (N, L, 8) index, weight and gathered-feature tensors, these
 kernels keep one point's 8 corners in registers: the forward reads x once per level and writes the
 (N, L·F) features; the backward scatters the table gradient with atomics and sums the analytic
-input gradient Σ_corners (table[corner]·g)·∂w/∂pos·scale over the levels in registers.
+input gradient Σ_corners (table[corner]·g)·∂w/∂pos·scale over the levels in registers. On the dense
+(coarse) levels, where many points hit one row, consecutive points of a block that lie in the same
+cell are summed first (a segmented scan over the block) and each run adds once: the NeRF stage's
+samples come in such runs (neighbouring rays at one depth, a normal's six probes), and its hash-grid
+backward took 2.5× less GPU time (``benchmarks/results/hashgrid_runs_summary_h200.md``).
 
 Arithmetic: float32 inputs (fp16/bf16 tables are upcast inside, accumulation is fp32), with FMA
 contraction switched off (``enable_fp_fusion=False``) so that x·scale + 0.5 rounds twice exactly as
 the eager fp32 code does: the same cells, the same fractions, results equal to ~1e-6 relative
-(only the summation order of the 8 corners and of the atomics differs). Integer indices are int32
-(dense) and uint32 (hashed), as in tcnn: exact for inputs in [−1, 2] (``HashGrid`` clamps to [0, 1]).
+(only the summation order of the 8 corners, of the runs and of the atomics differs). Integer
+indices are int32 (dense) and uint32 (hashed), as in tcnn: exact for inputs in [−1, 2] (``HashGrid``
+clamps to [0, 1]).
 
 Triton reads ``TRITON_INTERPRET`` when ``@triton.jit`` runs, i.e. when this module is imported:
 ``hashgrid.py`` imports it lazily (only on CUDA, or when ``MORPHEUS_HASHGRID=triton``), and the CPU
@@ -42,6 +47,12 @@ _BLOCK = 128  # points per program: 4 warps of 32 threads, one point per thread
 _NUM_WARPS = 4
 SUPPORTED_FEATURES = (1, 2, 4, 8)
 SUPPORTED_TABLE_DTYPES = (torch.float32, torch.float16, torch.bfloat16)
+RUN_REDUCTIONS = ("none", "dense", "all")
+RUN_REDUCTION = "dense"
+"""Levels whose table gradient sums runs of consecutive points in one cell before its atomics:
+``dense``, ``all`` or ``none`` (an atomic per point and corner). ``benchmarks/hashgrid_runs.py``
+times the three; the default is its measured choice (``all`` gains nothing over it: hashed rows are
+nearly unique)."""
 
 
 def supports(x: Tensor, table: Tensor) -> bool:
@@ -76,8 +87,9 @@ def _level_frame(x0, x1, x2, scale):
 
 
 @_jit
-def _corner_row(c0, c1, c2, res, rows, offset, CORNER: tl.constexpr, HASHED: tl.constexpr):
-    """Flat table row of corner CORNER = bx + 2·by + 4·bz of the cells (c0, c1, c2)."""
+def _corner_row(c0, c1, c2, res, rows, offset, CORNER, HASHED: tl.constexpr):
+    """Flat table row of corner CORNER = bx + 2·by + 4·bz of the cells (c0, c1, c2): one corner (a
+    constant), or a tensor of corners that broadcasts against the cells."""
     cx = c0 + (CORNER & 1)
     cy = c1 + ((CORNER >> 1) & 1)
     cz = c2 + ((CORNER >> 2) & 1)
@@ -155,8 +167,8 @@ def _load_points(x_ptr, base_ptr, offs, valid, BLOCK: tl.constexpr, STACKED: tl.
 
 
 @_jit
-def _forward_kernel(x_ptr, base_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
-                    n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr, STACKED: tl.constexpr):
+def _encode_kernel(x_ptr, base_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                   n_points, n_levels, n_dense, F: tl.constexpr, BLOCK: tl.constexpr, STACKED: tl.constexpr):
     level = tl.program_id(1)
     offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
     valid = offs < n_points
@@ -173,15 +185,60 @@ def _forward_kernel(x_ptr, base_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, row
 
 
 @_jit
-def _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
-                    rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr, BLOCK: tl.constexpr,
-                    HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr):
-    """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution."""
+def _segment_sum(flag_a, sum_a, flag_b, sum_b):
+    """Segmented inclusive sum: a set flag starts a new run. Associative, so the scan may combine
+    in any tree; at a run's last element the sum is the whole run's."""
+    return flag_a | flag_b, tl.where(flag_b != 0, sum_b, sum_a + sum_b)
+
+
+@_jit
+def _same_cell(c0, c1, c2, base, y0, y1, y2, y_base, scale):
+    """Whether the points y lie in the same cell (and object) of this level as the cells (c0, c1, c2)."""
+    n0, n1, n2, _f0, _f1, _f2 = _level_frame(y0, y1, y2, scale)
+    return (c0 == n0) & (c1 == n1) & (c2 == n2) & (base == y_base)
+
+
+@_jit
+def _scatter_runs(c0, c1, c2, f0, f1, f2, base, g, head, tail, active, grad_table_ptr, res, rows, offset,
+                  F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
+    """A level's table gradient with one atomic per run of consecutive points in one cell (``head``:
+    a run starts here, ``tail``: it ends here): all 8 corners' contributions at once, (BLOCK, 8, F),
+    summed along the block by a segmented scan, and added from each run's last point."""
+    corners = tl.arange(0, 8)[None, :]
+    wx = tl.where((corners & 1) != 0, f0[:, None], 1 - f0[:, None])
+    wy = tl.where(((corners >> 1) & 1) != 0, f1[:, None], 1 - f1[:, None])
+    wz = tl.where(((corners >> 2) & 1) != 0, f2[:, None], 1 - f2[:, None])
+    w = (wz * wy) * wx  # (BLOCK, 8), the per-corner code's order
+    row = _corner_row(c0[:, None], c1[:, None], c2[:, None], res, rows, offset, corners, HASHED) + base[:, None]
+    feats = tl.arange(0, F)
+    flags = tl.broadcast_to(head.to(tl.int32)[:, None, None], (BLOCK, 8, F))
+    _flags, sums = tl.associative_scan((flags, g[:, None, :] * w[:, :, None]), 0, _segment_sum)
+    ptrs = grad_table_ptr + row[:, :, None] * F + feats[None, None, :]
+    tl.atomic_add(ptrs, sums, mask=(active & tail)[:, None, None], sem="relaxed")
+
+
+@_jit
+def _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr, grad_table_ptr,
+                    scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr,
+                    BLOCK: tl.constexpr, HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr,
+                    REDUCE: tl.constexpr):
+    """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution. ``before`` and
+    ``after``: the neighbouring points' (x, y, z, row base), read when REDUCE sums runs of points in one
+    cell before the atomics (``first``/``last``: lanes where a run must start/end)."""
     scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active = _level_setup(
         x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK)
     feats = tl.arange(0, F)
     g_ptrs = grad_out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
     g = tl.load(g_ptrs, mask=active[:, None], other=0.0).to(tl.float32) * m
+    if WANT_TABLE:
+        if REDUCE:
+            # Samples along a ray, neighbouring rays and a normal's six probes come in runs that share
+            # a cell of the coarse levels; one atomic per run instead of per point takes the contention
+            # off the rows that many points hit (level 0: 16^3 rows for 2^18 points).
+            head = first | (_same_cell(c0, c1, c2, base, before[0], before[1], before[2], before[3], scale) == 0)
+            tail = last | (_same_cell(c0, c1, c2, base, after[0], after[1], after[2], after[3], scale) == 0)
+            _scatter_runs(c0, c1, c2, f0, f1, f2, base, g, head, tail, active, grad_table_ptr, res, rows, offset,
+                          F, BLOCK, HASHED)
     d0 = tl.zeros([BLOCK], dtype=tl.float32)
     d1 = tl.zeros([BLOCK], dtype=tl.float32)
     d2 = tl.zeros([BLOCK], dtype=tl.float32)
@@ -190,12 +247,9 @@ def _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad
         wx, wy, wz = _axis_weights(f0, f1, f2, corner)
         row_ptrs = row[:, None] * F + feats[None, :]
         if WANT_TABLE:
-            # Atomics contend where many points share a row: on the dense (coarse) levels every
-            # cell is hit by many points of a block (level 0 has 16^3 rows for 2^18 points), while
-            # hashed rows are nearly unique. Next steps: per-block partial sums of the dense levels
-            # in shared memory, or sorting the points by cell and reducing runs before the atomic.
-            w = (wz * wy) * wx
-            tl.atomic_add(grad_table_ptr + row_ptrs, g * w[:, None], mask=active[:, None], sem="relaxed")
+            if not REDUCE:  # one atomic per point and corner: rows of the hashed levels are nearly unique
+                w = (wz * wy) * wx
+                tl.atomic_add(grad_table_ptr + row_ptrs, g * w[:, None], mask=active[:, None], sem="relaxed")
         if WANT_X:
             vals = tl.load(table_ptr + row_ptrs, mask=active[:, None], other=0.0).to(tl.float32)
             dot = tl.sum(vals * g, axis=1)
@@ -216,27 +270,37 @@ def _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad
 
 
 @_jit
-def _backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr, scale_ptr, res_ptr,
-                     rows_ptr, offset_ptr, mask_ptr, n_points, n_levels, n_dense, F: tl.constexpr,
-                     BLOCK: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr, STACKED: tl.constexpr):
-    offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
+def _encode_backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table_ptr, grad_x_ptr, scale_ptr,
+                            res_ptr, rows_ptr, offset_ptr, mask_ptr, n_points, n_levels, n_dense,
+                            F: tl.constexpr, BLOCK: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr,
+                            STACKED: tl.constexpr, REDUCE_DENSE: tl.constexpr, REDUCE_HASHED: tl.constexpr):
+    lane = tl.arange(0, BLOCK)
+    offs = (tl.program_id(0) * BLOCK + lane).to(tl.int64)
     valid = offs < n_points
     x0, x1, x2, base = _load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
+    first = lane == 0
+    last = (lane == BLOCK - 1) | (offs + 1 >= n_points)
+    if REDUCE_DENSE or REDUCE_HASHED:  # the neighbours' coordinates, to find runs of points in one cell
+        before = _load_points(x_ptr, base_ptr, offs - 1, valid & (lane > 0), BLOCK, STACKED)
+        after = _load_points(x_ptr, base_ptr, offs + 1, (offs + 1) < n_points, BLOCK, STACKED)
+    else:
+        before = (x0, x1, x2, base)
+        after = before
     if WANT_X:  # grid (blocks, 1): every level in this program, grad_x summed in registers
         g0 = tl.zeros([BLOCK], dtype=tl.float32)
         g1 = tl.zeros([BLOCK], dtype=tl.float32)
         g2 = tl.zeros([BLOCK], dtype=tl.float32)
         for level in range(0, n_dense):
-            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
-                                         scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
-                                         F, BLOCK, False, WANT_X, WANT_TABLE)
+            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
+                                         grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
+                                         mask_ptr, level, n_levels, F, BLOCK, False, WANT_X, WANT_TABLE, REDUCE_DENSE)
             g0 += d0
             g1 += d1
             g2 += d2
         for level in range(n_dense, n_levels):
-            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr,
-                                         scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
-                                         F, BLOCK, True, WANT_X, WANT_TABLE)
+            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
+                                         grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
+                                         mask_ptr, level, n_levels, F, BLOCK, True, WANT_X, WANT_TABLE, REDUCE_HASHED)
             g0 += d0
             g1 += d1
             g2 += d2
@@ -247,11 +311,13 @@ def _backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table_ptr, g
     else:  # grid (blocks, levels): the table gradient alone, one level per program
         level = tl.program_id(1)
         if level < n_dense:
-            _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
-                            rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, False, False, WANT_TABLE)
+            _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
+                            grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                            F, BLOCK, False, False, WANT_TABLE, REDUCE_DENSE)
         else:
-            _backward_level(x0, x1, x2, base, offs, valid, table_ptr, grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr,
-                            rows_ptr, offset_ptr, mask_ptr, level, n_levels, F, BLOCK, True, False, WANT_TABLE)
+            _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
+                            grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                            F, BLOCK, True, False, WANT_TABLE, REDUCE_HASHED)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -291,7 +357,7 @@ def _check(x: Tensor, table: Tensor, tables: _LevelTables) -> _Constants:
         raise ValueError(f"points must be (N, 3), got {tuple(x.shape)}")
     if x.device != table.device:
         raise ValueError(f"points on {x.device} but table on {table.device}")
-    if x.device.type != "cuda" and type(_forward_kernel).__name__ != "InterpretedFunction":
+    if x.device.type != "cuda" and type(_encode_kernel).__name__ != "InterpretedFunction":
         raise RuntimeError("hash-grid Triton kernels on a non-CUDA device need Triton's interpreter: set "
                            "TRITON_INTERPRET=1 before morpheus_core.geometry.hashgrid_triton is imported")
     consts = _constants_for(tables)
@@ -329,9 +395,9 @@ def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: T
         return out
     grid = (triton.cdiv(n, _BLOCK), consts.n_levels)
     with device_guard(x):
-        _forward_kernel[grid](x, bases, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
-                              n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
-                              STACKED=base is not None, **_launch_options())
+        _encode_kernel[grid](x, bases, table, out, consts.scale, consts.res, consts.rows, consts.offsets, mask,
+                             n, consts.n_levels, consts.n_dense, F=n_features, BLOCK=_BLOCK,
+                             STACKED=base is not None, **_launch_options())
     return out
 
 
@@ -340,6 +406,8 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
     """(grad_x, grad_table), each None unless wanted; as ``hashgrid._encode_backward``."""
     consts = _check(x, table, tables)
     bases = _row_bases(x, base)
+    if RUN_REDUCTION not in RUN_REDUCTIONS:
+        raise ValueError(f"hashgrid_triton.RUN_REDUCTION must be one of {RUN_REDUCTIONS}, got {RUN_REDUCTION!r}")
     if not (want_x or want_table):
         return None, None
     x = x.contiguous()
@@ -359,10 +427,11 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
         gt = grad_table if grad_table is not None else x
         gx = grad_x if grad_x is not None else x
         with device_guard(x):
-            _backward_kernel[grid](x, bases, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows,
-                                   consts.offsets, mask, n, consts.n_levels, consts.n_dense, F=n_features,
-                                   BLOCK=_BLOCK, WANT_X=bool(want_x), WANT_TABLE=bool(want_table),
-                                   STACKED=base is not None, **_launch_options())
+            _encode_backward_kernel[grid](x, bases, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows,
+                                          consts.offsets, mask, n, consts.n_levels, consts.n_dense, F=n_features,
+                                          BLOCK=_BLOCK, WANT_X=bool(want_x), WANT_TABLE=bool(want_table),
+                                          STACKED=base is not None, REDUCE_DENSE=RUN_REDUCTION in ("dense", "all"),
+                                          REDUCE_HASHED=RUN_REDUCTION == "all", **_launch_options())
     if grad_table is not None and grad_table.dtype != table.dtype:
         grad_table = grad_table.to(table.dtype)
     return grad_x, grad_table
