@@ -246,6 +246,9 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
     grad_table = torch.zeros(table.shape, dtype=torch.float32, device=x.device) if want_table else None
     grad_x = torch.zeros((n, 3), dtype=x.dtype, device=x.device) if want_x else None
     if n > 0:
+        # Runs are reduced only for the table gradient: an x-only backward skips the neighbours' loads.
+        reduce_dense = want_table and RUN_REDUCTION in ("dense", "all")
+        reduce_hashed = want_table and RUN_REDUCTION == "all"
         blocks = triton.cdiv(n, _BLOCK)
         grid = (blocks, 1) if want_x else (blocks, consts.n_levels)
         # Unwanted outputs: any valid pointer of the right dtype (the constexpr flags drop their code).
@@ -255,8 +258,8 @@ def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: 
             _encode_backward_kernel[grid](x, bases, table, grad_out, gt, gx, consts.scale, consts.res, consts.rows,
                                           consts.offsets, mask, n, consts.n_levels, consts.n_dense, F=n_features,
                                           BLOCK=_BLOCK, WANT_X=bool(want_x), WANT_TABLE=bool(want_table),
-                                          STACKED=base is not None, REDUCE_DENSE=RUN_REDUCTION in ("dense", "all"),
-                                          REDUCE_HASHED=RUN_REDUCTION == "all", **_launch_options())
+                                          STACKED=base is not None, REDUCE_DENSE=reduce_dense,
+                                          REDUCE_HASHED=reduce_hashed, **_launch_options())
     if grad_table is not None and grad_table.dtype != table.dtype:
         grad_table = grad_table.to(table.dtype)
     return grad_x, grad_table
