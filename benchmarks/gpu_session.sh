@@ -24,6 +24,9 @@
 # variants: the CUDA prior tests, then paper_speed.py once per VARIANTS entry "name:key=value,key=value" (config
 #   overrides, e.g. "vae32:priors.vae_dtype=float32 vaeauto:"), with V_ARGS; tags h200_<name>; carry outputs/gpu_refs.
 #   All variants run in one call, so their ratios hold. V_TESTS=0 leaves the tests out.
+# rr: paper_speed.py once per RR_RUNS entry "mode:label" with hashgrid_triton.RUN_REDUCTION set to mode (none, dense,
+#   all), in the order given, with RR_ARGS; tags h200_rr_<mode>_<label>; carry outputs/gpu_refs. One call can hold
+#   both orders of an A/B ("dense:a none:b dense:c"); join the tables with benchmarks/speed_ab.py.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 # Everything a mode writes under $OUT comes back as one $OUT/<mode>.tgz: the device tool returns only a
@@ -86,6 +89,24 @@ if [ "$mode" = ab ]; then
     (cd "$dir" && timeout "${AB_TIMEOUT:-200}" python benchmarks/paper_speed.py --device cuda --mode after \
       --tag "h200_${AB_NAME:-ab}_$side" --store outputs/gpu_refs --out "$out" ${AB_ARGS:-}) > "$out/ab_$side.log" 2>&1
     echo "exit $?" >> "$out/ab_$side.log"
+  done
+  exit 0
+fi
+if [ "$mode" = rr ]; then
+  for run in ${RR_RUNS:?mode:label entries}; do
+    m=${run%%:*}; label=${run#*:}
+    timeout "${RR_TIMEOUT:-170}" python - "$m" --device cuda --mode after --tag "h200_rr_${m}_$label" \
+      --store outputs/gpu_refs --out "$out" ${RR_ARGS:-} > "$out/rr_${m}_$label.log" 2>&1 <<'PY'
+import runpy
+import sys
+
+from morpheus_core.geometry import hashgrid_triton
+
+hashgrid_triton.RUN_REDUCTION = sys.argv.pop(1)
+sys.argv[0] = "benchmarks/paper_speed.py"
+runpy.run_path("benchmarks/paper_speed.py", run_name="__main__")
+PY
+    echo "exit $?" >> "$out/rr_${m}_$label.log"
   done
   exit 0
 fi

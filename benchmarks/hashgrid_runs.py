@@ -35,12 +35,12 @@ import torch
 
 from assets_store.atomic import atomic_write_text
 from benchmarks.hashgrid_kernel import cuda_timed, make_grid
+from morpheus_core.geometry import hashgrid_triton as kernels
 from morpheus_core.geometry.hashgrid import _encode_backward
-from morpheus_core.geometry.hashgrid_triton import RUN_REDUCTIONS
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COMMAND = "python -m benchmarks.hashgrid_runs"
-MODES = RUN_REDUCTIONS
+MODES = kernels.RUN_REDUCTIONS
 
 
 def ray_samples(size: int = 128, n_samples: int = 256, radius: float = 0.6) -> torch.Tensor:
@@ -73,8 +73,6 @@ def point_sets() -> dict[str, torch.Tensor]:
 
 
 def measure(iters: int, warmup: int) -> list[dict[str, object]]:
-    from morpheus_core.geometry import hashgrid_triton as kernels
-
     grid = make_grid(0, table_std=0.1)
     tables, mask, table = grid._level_tables(), grid.level_mask, grid.table.detach()
     rows: list[dict[str, object]] = []
