@@ -4,6 +4,7 @@ how host-drawn random values reach it without stalling the host."""
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -22,12 +23,35 @@ def compile_enabled(device: torch.device) -> bool:
 
 
 def compiled_for(fn: Callable[..., Any], device: torch.device) -> Callable[..., Any]:
-    """``fn`` compiled (dynamic shapes: point counts change every step) where that is enabled."""
+    """``fn`` compiled (dynamic shapes: point counts change every step) where that is enabled.
+
+    A function that torch.compile fails on (a dynamo or backend bug of the installed torch) runs
+    eagerly from then on, after one warning: the results are the same, only slower."""
     if not compile_enabled(device):
         return fn
     if fn not in _compiled:
-        _compiled[fn] = torch.compile(fn, dynamic=True)
+        # Donated buffers forbid a second backward through a compiled graph (retain_graph), which
+        # gradient checks and the guidance's two-pass test take.
+        import torch._functorch.config as functorch_config  # not an attribute until imported (torch 2.11)
+
+        functorch_config.donated_buffer = False
+        _compiled[fn] = _falls_back(fn, torch.compile(fn, dynamic=True))
     return _compiled[fn]
+
+
+def _falls_back(fn: Callable[..., Any], compiled: Callable[..., Any]) -> Callable[..., Any]:
+    from torch._dynamo.exc import TorchDynamoException
+
+    def call(*args: Any) -> Any:
+        try:
+            return compiled(*args)
+        except TorchDynamoException as exc:
+            warnings.warn(f"torch.compile failed on {fn.__module__}.{fn.__qualname__}; it runs eagerly from now "
+                          f"on (same results, slower): {str(exc).splitlines()[0]}", RuntimeWarning, stacklevel=2)
+            _compiled[fn] = fn
+            return fn(*args)
+
+    return call
 
 
 def pick_device(name: str) -> torch.device:

@@ -13,6 +13,7 @@ from torch import nn
 from morpheus_core.cameras import Cameras, orbit
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_mesh, render_mesh_groups
+from morpheus_core.render.output import RenderOutput
 
 
 def sphere(subdivisions: int = 4, radius: float = 1.0, device: torch.device | str = "cpu") -> Mesh:
@@ -189,3 +190,71 @@ def test_half_precision_meshes_render_in_float32(dtype: torch.dtype, device: tor
     out = render_mesh(mesh.to(dtype=dtype), cams, 32, 32, position_colour)
     assert out.rgb.dtype == torch.float32 and torch.isfinite(out.rgb).all()
     assert (out.opacity - ref.opacity).abs().mean() < 0.02  # the rounded vertices moved slightly
+
+
+def _perturbed_render(subdivisions: int, seed: int, size: int,
+                      device: torch.device) -> tuple[RenderOutput, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    base = sphere(subdivisions, radius=0.7, device=device)
+    vertices = (base.vertices + 0.03 * torch.randn(base.vertices.shape, generator=g).to(device)).requires_grad_(True)
+    cams = orbit([20.0 + seed, -10.0], [40.0 + 7 * seed, 170.0])
+    out = render_mesh(Mesh(vertices, base.faces), cams, size, size, position_colour)
+    weights = torch.rand(2, size, size, 4, generator=g).to(device)
+    (torch.cat([out.rgb, out.opacity], -1) * weights).sum().backward()
+    return out, vertices.grad
+
+
+def test_compiled_rasteriser_matches_eager_without_breaks_or_recompiles(device: torch.device,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rasteriser's and anti-aliasing's pure tensor pieces go through ``compiled_for`` (CUDA).
+    Compiled, they must give the eager results for meshes and images of changing sizes, in whole
+    graphs (a graph break would fall back to op-by-op launches) compiled once (dynamic shapes). On
+    the CPU the graphs are traced and run by ``aot_eager``: inductor's CPU compile costs a minute."""
+    import torch._dynamo
+
+    from morpheus_core import devices
+
+    eager = [_perturbed_render(sub, seed, size, device) for sub, seed, size in ((2, 0, 40), (3, 1, 56))]
+    compile_fn = torch.compile
+    if device.type == "cpu":
+        monkeypatch.setattr(torch, "compile", lambda fn, **kw: compile_fn(fn, backend="aot_eager", **kw))
+    monkeypatch.setattr(devices, "compile_enabled", lambda _device: True)
+    monkeypatch.setattr(devices, "_compiled", {})
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    compiled = [_perturbed_render(2, 0, 40, device)]
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    compiled.append(_perturbed_render(3, 1, 56, device))
+    assert graphs >= 8, "the rasteriser's pieces were not compiled"
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs, "a new mesh or image size recompiled"
+    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
+    for (got, got_grad), (want, want_grad) in zip(compiled, eager, strict=True):
+        for name in ("rgb", "opacity", "depth", "normal"):
+            assert torch.allclose(getattr(got, name), getattr(want, name), atol=1e-5), name
+        assert float(want_grad.abs().sum()) > 0
+        assert torch.allclose(got_grad, want_grad, rtol=1e-4, atol=1e-5 * float(want_grad.abs().max()))
+    torch._dynamo.reset()
+
+
+def test_a_function_torch_compile_fails_on_runs_eagerly_after_one_warning(monkeypatch: pytest.MonkeyPatch) -> None:
+    from torch._dynamo.exc import BackendCompilerFailed
+
+    from morpheus_core import devices
+
+    def broken_backend(gm: torch.fx.GraphModule, example_inputs: list) -> None:
+        raise RuntimeError("backend bug")
+
+    want, want_grad = _perturbed_render(2, 0, 40, torch.device("cpu"))
+    compile_fn = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: compile_fn(fn, backend=broken_backend, **kw))
+    monkeypatch.setattr(devices, "compile_enabled", lambda _device: True)
+    monkeypatch.setattr(devices, "_compiled", {})
+    torch._dynamo.reset()
+    with pytest.warns(RuntimeWarning, match="runs eagerly from now on") as caught:
+        got, got_grad = _perturbed_render(2, 0, 40, torch.device("cpu"))
+    assert all(issubclass(w.category, RuntimeWarning) for w in caught)
+    assert set(devices._compiled) and all(devices._compiled[fn] is fn for fn in devices._compiled)
+    assert torch.equal(got.rgb, want.rgb) and torch.equal(got_grad, want_grad)
+    with pytest.raises(BackendCompilerFailed):
+        compile_fn(lambda x: x + 1, backend=broken_backend)(torch.ones(2))
+    torch._dynamo.reset()

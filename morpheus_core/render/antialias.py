@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import compiled_for
 from morpheus_core.gather import gather_batched_rows, gather_rows
 from morpheus_core.render.raster import Fragments, RasterInputError, _pair_chunks, _span, _to_pixels
 
@@ -50,65 +51,73 @@ class SilhouetteCrossings:
     t: Tensor
 
 
-def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
-    """Find where silhouette edges cross covered/empty pixel pairs (see the module docstring)."""
-    config = fragments.config
-    clip, height, width, batch = fragments.clip, fragments.height, fragments.width, fragments.batch
-    hw = height * width
-    topo = fragments.edges
-    device = clip.device
-    with torch.no_grad():
-        orient = fragments.orientation  # (B, F)
-        has_two = topo.faces[:, 1] >= 0
-        o1 = orient[:, topo.faces[:, 0]]
-        o2 = torch.where(has_two, orient[:, topo.faces[:, 1].clamp(min=0)], 0)
-        candidate = ((o1 != 0) | (o2 != 0)) & (topo.nonmanifold | ~has_two | (o1 != o2))
-        sx, sy, _, ok = _to_pixels(clip.detach(), height, width, config.near_w)
-        candidate &= ok[:, topo.vertices].all(-1)
-        view, edge = candidate.nonzero(as_tuple=True)
-        u0, u1 = sx[view, topo.vertices[edge, 0]], sx[view, topo.vertices[edge, 1]]
-        v0, v1 = sy[view, topo.vertices[edge, 0]], sy[view, topo.vertices[edge, 1]]
-        du, dv = u1 - u0, v1 - v0
-        long_enough = torch.maximum(du.abs(), dv.abs()) > config.min_edge_px
-        x_major = du.abs() >= dv.abs()
-        covered = fragments.face_id.reshape(-1) >= 0
-        best = torch.full((2 * batch * hw,), -1, dtype=torch.int64, device=device)
-        edge_bits = max(1, topo.vertices.shape[0].bit_length())
-        # Walk x-major edges along columns (crossing vertical pixel pairs) and y-major edges along rows.
-        for major in (True, False):
-            sel = (x_major == major) & long_enough
-            a0, a1 = (u0, u1) if major else (v0, v1)
-            c0, c1 = (v0, v1) if major else (u0, u1)
-            n_along, n_across = (width, height) if major else (height, width)
-            first, last = _span(torch.minimum(a0, a1), torch.maximum(a0, a1), n_along)
-            counts = ((last - first + 1).clamp(min=0) * sel).long()
-            for owner, local in _pair_chunks(counts, config.max_pairs_per_chunk):
-                along = first[owner] + local
-                slope = (c1[owner] - c0[owner]) / (a1[owner] - a0[owner])
-                cross = c0[owner] + (along.to(slope.dtype) - a0[owner]) * slope
-                lower = torch.floor(cross.clamp(-1.0, float(n_across))).long()
-                inside = (lower >= 0) & (lower <= n_across - 2)
-                lower = lower.clamp(0, max(n_across - 2, 0))
-                row, col = (lower, along) if major else (along, lower)
-                p = view[owner] * hw + row * width + col
-                q = p + (width if major else 1)
-                cov_p, cov_q = covered[p], covered[q]
-                keep = inside & (cov_p != cov_q)
-                frac = cross - lower.to(cross.dtype)
-                t = torch.where(cov_p, frac, 1.0 - frac).clamp(0.0, 1.0)
-                key = ((t * ((1 << _T_BITS) - 1)).round().long() << edge_bits) | edge[owner]
-                pair = p + (0 if major else batch * hw)
-                best.scatter_reduce_(0, pair, torch.where(keep, key, -1), reduce="amax", include_self=True)
-        pair = (best >= 0).nonzero().squeeze(1)
-        win_edge = best[pair] & ((1 << edge_bits) - 1)
-        vertical = pair < batch * hw
-        p = pair % (batch * hw)
-        q = p + torch.where(vertical, width, 1)
-        cov_p = covered[p]
-        win_view = p // hw
+def _candidates(orient: Tensor, edge_faces: Tensor, nonmanifold: Tensor, edge_vertices: Tensor, clip: Tensor,
+                height: int, width: int, near_w: float) -> tuple[Tensor, Tensor, Tensor]:
+    """(B, E) flags of the edges that can form a view's silhouette, and the vertices' pixel
+    coordinates sx, sy (B, V). Pure tensor code: compiled on CUDA (``compiled_for``)."""
+    has_two = edge_faces[:, 1] >= 0
+    o1 = orient[:, edge_faces[:, 0]]
+    o2 = torch.where(has_two, orient[:, edge_faces[:, 1].clamp(min=0)], 0)
+    candidate = ((o1 != 0) | (o2 != 0)) & (nonmanifold | ~has_two | (o1 != o2))
+    sx, sy, _, ok = _to_pixels(clip, height, width, near_w)
+    return candidate & ok[:, edge_vertices].all(-1), sx, sy
 
-    # Differentiable recomputation of t for the winning edge of each pair.
-    ends = gather_batched_rows(clip, win_view.unsqueeze(-1), topo.vertices[win_edge])  # (P, 2, 4)
+
+def _walks(view: Tensor, edge: Tensor, edge_vertices: Tensor, sx: Tensor, sy: Tensor, height: int, width: int,
+           min_edge_px: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Per candidate (view, edge): its screen end points ``ends`` (n, 4: u0, u1, v0, v1), and the first
+    pixel and pixel count of its walk along columns (x-major edges; 0 for the others) and along rows
+    (y-major edges). Pure tensor code: compiled on CUDA."""
+    ia, ib = edge_vertices[edge, 0], edge_vertices[edge, 1]
+    u0, u1, v0, v1 = sx[view, ia], sx[view, ib], sy[view, ia], sy[view, ib]
+    du, dv = u1 - u0, v1 - v0
+    long_enough = torch.maximum(du.abs(), dv.abs()) > min_edge_px
+    x_major = du.abs() >= dv.abs()
+    first_x, last_x = _span(torch.minimum(u0, u1), torch.maximum(u0, u1), width)
+    first_y, last_y = _span(torch.minimum(v0, v1), torch.maximum(v0, v1), height)
+    counts_x = ((last_x - first_x + 1).clamp(min=0) * (x_major & long_enough)).long()
+    counts_y = ((last_y - first_y + 1).clamp(min=0) * (~x_major & long_enough)).long()
+    return torch.stack([u0, u1, v0, v1], -1), first_x, counts_x, first_y, counts_y
+
+
+def _crossing_keys(owner: Tensor, local: Tensor, first: Tensor, ends: Tensor, view: Tensor, edge: Tensor,
+                   covered: Tensor, major: bool, width: int, hw: int, n_across: int, offset: int,
+                   edge_scale: int) -> tuple[Tensor, Tensor]:
+    """Pair slot (P,) and packed (t, edge) key (P,) of each (walk, k-th step) pair; pairs that do not
+    separate a covered from an empty pixel get the neutral key -1. ``edge_scale`` = 2^edge_bits (a
+    product, not a shift: dynamo in torch 2.11 cannot shift by a symbolic int). Pure tensor code:
+    compiled on CUDA."""
+    e = ends[owner]
+    a0, a1, c0, c1 = (e[:, 0], e[:, 1], e[:, 2], e[:, 3]) if major else (e[:, 2], e[:, 3], e[:, 0], e[:, 1])
+    along = first[owner] + local
+    slope = (c1 - c0) / (a1 - a0)
+    cross = c0 + (along.to(slope.dtype) - a0) * slope
+    lower = torch.floor(cross.clamp(-1.0, float(n_across))).long()
+    inside = (lower >= 0) & (lower <= n_across - 2)
+    lower = lower.clamp(0, max(n_across - 2, 0))
+    row, col = (lower, along) if major else (along, lower)
+    p = view[owner] * hw + row * width + col
+    q = p + (width if major else 1)
+    cov_p, cov_q = covered[p], covered[q]
+    keep = inside & (cov_p != cov_q)
+    frac = cross - lower.to(cross.dtype)
+    t = torch.where(cov_p, frac, 1.0 - frac).clamp(0.0, 1.0)
+    key = (t * ((1 << _T_BITS) - 1)).round().long() * edge_scale + edge[owner]
+    return p + offset, torch.where(keep, key, -1)
+
+
+def _crossings(pair: Tensor, best: Tensor, covered: Tensor, edge_vertices: Tensor, clip: Tensor, height: int,
+               width: int, edge_scale: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Differentiable t (P,) of each pair's winning edge, recomputed from the clip vertices, and the
+    pair's inner (covered) and outer pixels. Pure tensor code: compiled on CUDA."""
+    hw = height * width
+    batch_hw = covered.shape[0]
+    win_edge = best[pair] % edge_scale  # the kept keys are ≥ 0
+    vertical = pair < batch_hw
+    p = pair % batch_hw
+    q = p + torch.where(vertical, width, 1)
+    cov_p = covered[p]
+    ends = gather_batched_rows(clip, (p // hw).unsqueeze(-1), edge_vertices[win_edge])  # (P, 2, 4)
     w = ends[..., 3]
     ex = (ends[..., 0] / w + 1.0) * (0.5 * width) - 0.5
     ey = (1.0 - ends[..., 1] / w) * (0.5 * height) - 0.5
@@ -122,9 +131,49 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
     lower = torch.where(vertical, row, col)
     frac = c0 + (along - a0) * (c1 - c0) / (a1 - a0) - lower
     t = torch.where(cov_p, frac, 1.0 - frac).clamp(0.0, 1.0)
-    inner = torch.where(cov_p, p, q)
-    outer = torch.where(cov_p, q, p)
+    return t, torch.where(cov_p, p, q), torch.where(cov_p, q, p)
+
+
+def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
+    """Find where silhouette edges cross covered/empty pixel pairs (see the module docstring)."""
+    config = fragments.config
+    clip, height, width = fragments.clip, fragments.height, fragments.width
+    topo = fragments.edges
+    device = clip.device
+    with torch.no_grad():
+        candidate, sx, sy = compiled_for(_candidates, device)(
+            fragments.orientation, topo.faces, topo.nonmanifold, topo.vertices, clip.detach(), height, width,
+            config.near_w)
+        view, edge = candidate.nonzero(as_tuple=True)
+        ends, first_x, counts_x, first_y, counts_y = compiled_for(_walks, device)(
+            view, edge, topo.vertices, sx, sy, height, width, config.min_edge_px)
+        covered = fragments.face_id.reshape(-1) >= 0
+        best = torch.full((2 * covered.shape[0],), -1, dtype=torch.int64, device=device)
+        edge_scale = 1 << max(1, topo.vertices.shape[0].bit_length())
+        # Walk x-major edges along columns (crossing vertical pixel pairs) and y-major edges along rows;
+        # the row walks' pairs sit in the second half of ``best``.
+        for major, first, counts in ((True, first_x, counts_x), (False, first_y, counts_y)):
+            for owner, local in _pair_chunks(counts, config.max_pairs_per_chunk):
+                pair, key = compiled_for(_crossing_keys, device)(
+                    owner, local, first, ends, view, edge, covered, major, width, height * width,
+                    height if major else width, 0 if major else covered.shape[0], edge_scale)
+                best.scatter_reduce_(0, pair, key, reduce="amax", include_self=True)
+        pair = (best >= 0).nonzero().squeeze(1)
+    t, inner, outer = compiled_for(_crossings, device)(pair, best, covered, topo.vertices, clip, height, width,
+                                                        edge_scale)
     return SilhouetteCrossings(inner=inner, outer=outer, t=t)
+
+
+def _blend(flat: Tensor, t: Tensor, inner: Tensor, outer: Tensor) -> Tensor:
+    """``antialias``'s blend of (pixels, C) rows across the pairs. Pure tensor code: compiled on CUDA."""
+    t = t.to(flat.dtype)
+    w_in = torch.relu(0.5 - t)
+    w_out = torch.relu(t - 0.5)
+    inner_v, outer_v = gather_rows(flat, inner), gather_rows(flat, outer)
+    pull = torch.zeros_like(flat).index_add(0, inner, w_in.unsqueeze(-1) * (outer_v - inner_v))
+    pull = pull.index_add(0, outer, w_out.unsqueeze(-1) * (inner_v - outer_v))
+    weight = flat.new_zeros(flat.shape[0]).index_add(0, inner, w_in).index_add(0, outer, w_out)
+    return flat + pull / weight.clamp(min=1.0).unsqueeze(-1)
 
 
 def antialias(image: Tensor, fragments: Fragments, crossings: SilhouetteCrossings | None = None) -> Tensor:
@@ -138,12 +187,5 @@ def antialias(image: Tensor, fragments: Fragments, crossings: SilhouetteCrossing
         raise RasterInputError(f"image must be ({batch}, {height}, {width}, C), got {tuple(image.shape)}")
     crossings = crossings if crossings is not None else silhouette_crossings(fragments)
     flat = image.reshape(batch * height * width, image.shape[-1])
-    t = crossings.t.to(flat.dtype)
-    w_in = torch.relu(0.5 - t)
-    w_out = torch.relu(t - 0.5)
-    inner, outer = gather_rows(flat, crossings.inner), gather_rows(flat, crossings.outer)
-    pull = torch.zeros_like(flat).index_add(0, crossings.inner, w_in.unsqueeze(-1) * (outer - inner))
-    pull = pull.index_add(0, crossings.outer, w_out.unsqueeze(-1) * (inner - outer))
-    weight = flat.new_zeros(flat.shape[0]).index_add(0, crossings.inner, w_in).index_add(0, crossings.outer, w_out)
-    out = flat + pull / weight.clamp(min=1.0).unsqueeze(-1)
+    out = compiled_for(_blend, flat.device)(flat, crossings.t, crossings.inner, crossings.outer)
     return out.reshape(image.shape)

@@ -39,6 +39,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from morpheus_core.devices import compiled_for
 from morpheus_core.gather import gather_batched_rows, gather_rows
 
 _INT64_MAX = torch.iinfo(torch.int64).max
@@ -240,6 +241,54 @@ def _span(lo: Tensor, hi: Tensor, size: int) -> tuple[Tensor, Tensor]:
     return first, last
 
 
+def _triangle_setup(clip: Tensor, faces: Tensor, height: int, width: int, near_w: float, min_area_px: float,
+                    cull_backfaces: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per view and triangle: orientation (B, F) int8, pixel-pair count (B·F,) of its screen box (0
+    when not drawn), packed corners (B·F, 10: x, y, NDC depth, area) and box (B·F, 3: first column,
+    first row, width). Pure tensor code: compiled on CUDA (``compiled_for``)."""
+    sx, sy, z, ok = _to_pixels(clip, height, width, near_w)
+    tx, ty, tz = sx[:, faces], sy[:, faces], z[:, faces]  # (B, F, 3)
+    area = _signed_area(tx, ty)
+    # Degenerate: tiny area in pixels, or tiny relative to the longest edge (collinear corners
+    # whose area is only rounding noise — that noise grows with the coordinates' magnitude).
+    longest = ((tx - tx.roll(-1, -1)) ** 2 + (ty - ty.roll(-1, -1)) ** 2).amax(-1)
+    eps = _DEGENERATE_REL * torch.finfo(tx.dtype).eps
+    drawable = ok[:, faces].all(-1) & (area.abs() > torch.clamp(eps * longest, min=min_area_px))
+    front = area < 0
+    if cull_backfaces:
+        drawable &= front
+    orientation = torch.where(drawable, torch.where(front, 1, -1), 0).to(torch.int8)
+    j0, j1 = _span(tx.amin(-1), tx.amax(-1), width)
+    i0, i1 = _span(ty.amin(-1), ty.amax(-1), height)
+    box_w = (j1 - j0 + 1).clamp(min=0)
+    counts = (box_w * (i1 - i0 + 1).clamp(min=0) * drawable).reshape(-1)
+    # One gather per pair instead of several: corners, depths and area packed in one row.
+    corners = torch.cat([tx, ty, tz, area.unsqueeze(-1)], -1).reshape(-1, 10)
+    boxes = torch.stack([j0, i0, box_w], -1).reshape(-1, 3)
+    return orientation, counts, corners, boxes
+
+
+def _pair_keys(tri: Tensor, local: Tensor, boxes: Tensor, corners: Tensor, num_faces: int, width: int, hw: int,
+               id_scale: int, depth_scale: float) -> tuple[Tensor, Tensor]:
+    """Flat pixel (P,) and packed z-buffer key (P,) of (triangle, k-th pixel of its box) pairs; pairs
+    outside the triangle or the depth range get the neutral key. Every pair writes one: a masked
+    index would be a host sync. Pure tensor code: compiled on CUDA. ``id_scale`` = 2^id_bits (a
+    product, not a shift: dynamo in torch 2.11 cannot shift by a symbolic int)."""
+    box = boxes[tri]
+    px = box[:, 0] + local % box[:, 2]
+    py = box[:, 1] + local // box[:, 2]
+    c = corners[tri]
+    e0, e1, e2 = _edge_functions(c[:, 0:3], c[:, 3:6], px.to(c.dtype), py.to(c.dtype))
+    a = c[:, 9]
+    inside = (e0 * a >= 0) & (e1 * a >= 0) & (e2 * a >= 0)
+    depth = (e0 * c[:, 6] + e1 * c[:, 7] + e2 * c[:, 8]) / a
+    inside &= (depth >= -1.0) & (depth <= 1.0)
+    quant = ((depth.clamp(-1.0, 1.0) + 1.0) * (0.5 * depth_scale)).long()
+    key = quant * id_scale + tri % num_faces
+    pixel = (tri // num_faces) * hw + py * width + px
+    return pixel, torch.where(inside, key, _INT64_MAX)
+
+
 def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: RasterConfig | None = None) -> Fragments:
     """Rasterise triangles ``faces`` (F, 3) int64 over clip-space vertices ``clip`` (B, V, 4) or (V, 4)
     into ``height`` × ``width`` images per view; see the module docstring for the rules."""
@@ -249,53 +298,22 @@ def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: Rast
     hw = height * width
 
     with torch.no_grad():
-        sx, sy, z, ok = _to_pixels(clip.detach(), height, width, config.near_w)
-        tx, ty, tz = sx[:, faces], sy[:, faces], z[:, faces]  # (B, F, 3)
-        area = _signed_area(tx, ty)
-        # Degenerate: tiny area in pixels, or tiny relative to the longest edge (collinear corners
-        # whose area is only rounding noise — that noise grows with the coordinates' magnitude).
-        longest = ((tx - tx.roll(-1, -1)) ** 2 + (ty - ty.roll(-1, -1)) ** 2).amax(-1)
-        eps = _DEGENERATE_REL * torch.finfo(tx.dtype).eps
-        drawable = ok[:, faces].all(-1) & (area.abs() > torch.clamp(eps * longest, min=config.min_area_px))
-        front = area < 0
-        if config.cull_backfaces:
-            drawable &= front
-        orientation = torch.where(drawable, torch.where(front, 1, -1), 0).to(torch.int8)
-
-        j0, j1 = _span(tx.amin(-1), tx.amax(-1), width)
-        i0, i1 = _span(ty.amin(-1), ty.amax(-1), height)
-        box_w = (j1 - j0 + 1).clamp(min=0)
-        counts = (box_w * (i1 - i0 + 1).clamp(min=0) * drawable).reshape(-1)
-
+        orientation, counts, corners, boxes = compiled_for(_triangle_setup, device)(
+            clip.detach(), faces, height, width, config.near_w, config.min_area_px, config.cull_backfaces)
         id_bits = max(1, num_faces.bit_length())
-        depth_bits = min(_MAX_DEPTH_BITS, 62 - id_bits)
-        depth_scale = float((1 << depth_bits) - 1)
+        depth_scale = float((1 << min(_MAX_DEPTH_BITS, 62 - id_bits)) - 1)
         zbuf = torch.full((batch * hw,), _INT64_MAX, dtype=torch.int64, device=device)
-        # One gather per pair instead of several: corners, depths and area packed in one row.
-        corners = torch.cat([tx, ty, tz, area.unsqueeze(-1)], -1).reshape(-1, 10)
-        boxes = torch.stack([j0, i0, box_w], -1).reshape(-1, 3)
         for tri, local in _pair_chunks(counts, config.max_pairs_per_chunk):
-            box = boxes[tri]
-            px = box[:, 0] + local % box[:, 2]
-            py = box[:, 1] + local // box[:, 2]
-            c = corners[tri]
-            e0, e1, e2 = _edge_functions(c[:, 0:3], c[:, 3:6], px.to(c.dtype), py.to(c.dtype))
-            a = c[:, 9]
-            inside = (e0 * a >= 0) & (e1 * a >= 0) & (e2 * a >= 0)
-            depth = (e0 * c[:, 6] + e1 * c[:, 7] + e2 * c[:, 8]) / a
-            inside &= (depth >= -1.0) & (depth <= 1.0)
-            quant = ((depth.clamp(-1.0, 1.0) + 1.0) * (0.5 * depth_scale)).long()
-            key = (quant << id_bits) | (tri % max(num_faces, 1))
-            pixel = (tri // max(num_faces, 1)) * hw + py * width + px
-            # Every pair writes (outside ones the neutral key): a masked index would be a host sync.
-            zbuf.scatter_reduce_(0, pixel, torch.where(inside, key, _INT64_MAX), reduce="amin", include_self=True)
+            pixel, key = compiled_for(_pair_keys, device)(tri, local, boxes, corners, max(num_faces, 1), width, hw,
+                                                          1 << id_bits, depth_scale)
+            zbuf.scatter_reduce_(0, pixel, key, reduce="amin", include_self=True)
 
         covered = zbuf != _INT64_MAX
         face_flat = torch.where(covered, zbuf & ((1 << id_bits) - 1), -1)
         pixel_index = covered.nonzero().squeeze(1)
         face = face_flat[pixel_index]
 
-    bary, view_depth = _perspective_barycentrics(clip, faces, pixel_index, face, height, width)
+    bary, view_depth = compiled_for(_perspective_barycentrics, device)(clip, faces, pixel_index, face, height, width)
     return Fragments(clip=clip, faces=faces, height=height, width=width,
                      face_id=face_flat.reshape(batch, height, width), pixel_index=pixel_index, face=face,
                      bary=bary, view_depth=view_depth, orientation=orientation, config=config)
