@@ -4,7 +4,7 @@ Three passes, the first one free of autograd:
 
 1. **Visibility** (``rasterize``). Every drawable triangle of every view is expanded into the pixels
    of its screen bounding box; pixel centres are tested against the three edge functions and the
-   survivors write ``(quantised NDC depth << id_bits) | face_id`` into a flat ``(B·H·W)`` int64
+   survivors write ``quantised NDC depth · 2^id_bits + face_id`` into a flat ``(B·H·W)`` int64
    z-buffer with ``scatter_reduce(amin)``: nearest depth wins, ties go to the lower face id. The
    (triangle, pixel) pairs are generated in slices of at most ``RasterConfig.max_pairs_per_chunk``
    (a running-count ``searchsorted`` maps each pair to its triangle), so memory stays bounded however
@@ -301,15 +301,16 @@ def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: Rast
         orientation, counts, corners, boxes = compiled_for(_triangle_setup, device)(
             clip.detach(), faces, height, width, config.near_w, config.min_area_px, config.cull_backfaces)
         id_bits = max(1, num_faces.bit_length())
+        id_scale = 1 << id_bits
         depth_scale = float((1 << min(_MAX_DEPTH_BITS, 62 - id_bits)) - 1)
         zbuf = torch.full((batch * hw,), _INT64_MAX, dtype=torch.int64, device=device)
         for tri, local in _pair_chunks(counts, config.max_pairs_per_chunk):
             pixel, key = compiled_for(_pair_keys, device)(tri, local, boxes, corners, max(num_faces, 1), width, hw,
-                                                          1 << id_bits, depth_scale)
+                                                          id_scale, depth_scale)
             zbuf.scatter_reduce_(0, pixel, key, reduce="amin", include_self=True)
 
         covered = zbuf != _INT64_MAX
-        face_flat = torch.where(covered, zbuf & ((1 << id_bits) - 1), -1)
+        face_flat = torch.where(covered, zbuf % id_scale, -1)  # covered keys are ≥ 0
         pixel_index = covered.nonzero().squeeze(1)
         face = face_flat[pixel_index]
 
