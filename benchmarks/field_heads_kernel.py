@@ -1,5 +1,6 @@
 """The fused field-head kernels (``morpheus_core/geometry/mlp_triton.py``) against the modules, and
-a sweep of their launch sizes: rows per program, warps, backward programs per SM.
+a sweep of their launch sizes (rows per program, warps, backward programs per SM) and of how the
+backward's two heads meet in the feature gradient (``mlp_triton._GRAD_X``).
 
 The paper's heads (32 → 64 → 64 → 1 and → 3) on 2^19 and 2^22 rows of random features; forward
 and backward timed apart (CUDA events around 20 repeats after 3 warm-up calls). The modules run
@@ -28,7 +29,8 @@ from morpheus_core.geometry.nerf import NerfConfig, NerfField
 RESULTS = Path(__file__).parent / "results"
 FORWARD = [(64, 4), (128, 4), (128, 8), (256, 8)]
 BACKWARD = [(32, 4), (64, 4), (64, 8), (128, 8)]
-PROGRAMS_PER_SM = [2, 4, 8]
+PROGRAMS_PER_SM = [4, 8]
+GRAD_X = ["store", "relaxed", "acq_rel"]
 
 
 def cuda_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> float:
@@ -62,20 +64,21 @@ def sweep(rows: int) -> list[dict[str, object]]:
         out.append({"rows": rows, "path": f"modules, {'TF32' if tf32 else 'fp32'}", "fwd_bwd_ms": cuda_ms(modules)})
     torch.backends.cuda.matmul.allow_tf32 = False
     saved = (mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS, mlp_triton._BACKWARD_BLOCK,
-             mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM)
+             mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X)
     try:
         for block, warps in FORWARD:
             mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS = block, warps
             ms = cuda_ms(lambda: mlp_triton.heads_forward(feats, density, albedo))
             out.append({"rows": rows, "path": "fused forward", "block": block, "warps": warps, "ms": ms})
-        for (block, warps), per_sm in itertools.product(BACKWARD, PROGRAMS_PER_SM):
-            mlp_triton._BACKWARD_BLOCK, mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM = block, warps, per_sm
+        for grad_x, (block, warps), per_sm in itertools.product(GRAD_X, BACKWARD, PROGRAMS_PER_SM):
+            (mlp_triton._GRAD_X, mlp_triton._BACKWARD_BLOCK, mlp_triton._BACKWARD_WARPS,
+             mlp_triton._PROGRAMS_PER_SM) = grad_x, block, warps, per_sm
             ms = cuda_ms(lambda: mlp_triton.heads_backward(feats, density, albedo, grad_d, grad_a, True))
-            out.append({"rows": rows, "path": "fused backward", "block": block, "warps": warps,
+            out.append({"rows": rows, "path": f"fused backward, {grad_x}", "block": block, "warps": warps,
                         "programs_per_sm": per_sm, "ms": ms})
     finally:
         (mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS, mlp_triton._BACKWARD_BLOCK,
-         mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM) = saved
+         mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X) = saved
     return out
 
 
@@ -94,11 +97,12 @@ def markdown(meta: dict[str, object], rows: list[dict[str, object]]) -> str:
     for n in sorted({int(r["rows"]) for r in rows}):
         fused = [r for r in rows if r["rows"] == n and "ms" in r]
         best_f = min((r for r in fused if r["path"] == "fused forward"), key=lambda r: r["ms"])
-        best_b = min((r for r in fused if r["path"] == "fused backward"), key=lambda r: r["ms"])
+        best_b = min((r for r in fused if r["path"].startswith("fused backward")), key=lambda r: r["ms"])
         mods = {r["path"]: r["fwd_bwd_ms"] for r in rows if r["rows"] == n and "fwd_bwd_ms" in r}
         lines.append("")
         lines.append(f"2^{n.bit_length() - 1} rows: best fused forward + backward {best_f['ms'] + best_b['ms']:.2f} ms "
-                     f"(forward {best_f['block']}×{best_f['warps']}, backward {best_b['block']}×{best_b['warps']}, "
+                     f"(forward {best_f['block']}×{best_f['warps']}, "
+                     f"{best_b['path']} {best_b['block']}×{best_b['warps']}, "
                      f"{best_b['programs_per_sm']} per SM) against the modules ("
                      + ", ".join(f"{k}: {v:.2f} ms" for k, v in mods.items()) + ").")
     return "\n".join(lines) + "\n"
@@ -118,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             + " ".join(argv if argv is not None else [f"--tag {args.tag}"]),
             "defaults": {"forward": f"{mlp_triton._FORWARD_BLOCK}×{mlp_triton._FORWARD_WARPS}",
                          "backward": f"{mlp_triton._BACKWARD_BLOCK}×{mlp_triton._BACKWARD_WARPS}, "
-                                     f"{mlp_triton._PROGRAMS_PER_SM} per SM"}}
+                                     f"{mlp_triton._PROGRAMS_PER_SM} per SM, {mlp_triton._GRAD_X}"}}
     stem = args.results / f"field_heads_{args.tag}"
     args.results.mkdir(parents=True, exist_ok=True)
     atomic_write_text(stem.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")

@@ -125,6 +125,25 @@ def test_backward_is_deterministic_and_skips_unused_heads() -> None:
         mlp_triton.heads_backward(x, pd, None, grad_d, torch.ones(500, 3, device=DEVICE), True)
 
 
+@pytest.mark.parametrize("mode", ["store", "relaxed"])
+def test_feature_gradient_modes_agree(mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each way the heads' feature gradients meet gives the reference's (acq_rel atomics) result,
+    with both heads, with either alone, and with a row count off the block size."""
+    pd, pa, x, grad_d = problem(203, 32, 64, 1, seed=11)
+    grad_a = torch.randn(203, 3, generator=torch.Generator().manual_seed(12)).to(DEVICE)
+    for gd, ga in [(grad_d, grad_a), (grad_d, None), (None, grad_a)]:
+        monkeypatch.setattr(mlp_triton, "_GRAD_X", "acq_rel")
+        want = mlp_triton.heads_backward(x, pd, pa, gd, ga, True)
+        monkeypatch.setattr(mlp_triton, "_GRAD_X", mode)
+        got = mlp_triton.heads_backward(x, pd, pa, gd, ga, True)
+        assert_near(got[0], want[0], rel=1e-5)
+        assert float(got[0].abs().sum()) > 0
+        for got_head, want_head in zip(got[1:], want[1:], strict=True):
+            assert (got_head is None) == (want_head is None)
+            for a, b in zip(got_head or [], want_head or [], strict=True):
+                assert torch.equal(a, b)  # the parameter partials do not depend on the mode
+
+
 def test_unsupported_inputs() -> None:
     density, albedo = heads(32, 64, 3, seed=7)
     x = torch.randn(10, 32, device=DEVICE)

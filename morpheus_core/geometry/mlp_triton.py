@@ -44,6 +44,10 @@ _BACKWARD_BLOCK = 64
 _FORWARD_WARPS = 4
 _BACKWARD_WARPS = 4
 _PROGRAMS_PER_SM = 8
+_GRAD_X = "store"
+"""How the two heads' feature gradients meet: ``store`` (each head stores its own into one half of a
+(2, N, in) buffer, summed after), ``relaxed`` or ``acq_rel`` (both add into one zeroed buffer with
+atomics of that memory order). ``benchmarks/field_heads_kernel.py`` compares them."""
 
 # Integer arguments that change from call to call: Triton would otherwise compile a variant for each
 # combination of "divisible by 16" and "equal to 1" it meets (seconds each, mid-run; H200: a NeRF
@@ -145,7 +149,7 @@ def _store_vector(ptr, acc, n, N: tl.constexpr):
 @_jit
 def _backward_head(x_ptr, g_ptr, gx_ptr, part_ptr, w1, b1, w2, b2, w3, b3, n_rows, n_in, n_hidden, n_out,
                    n_tiles, n_programs, IN: tl.constexpr, HID: tl.constexpr, OUT: tl.constexpr,
-                   BLOCK: tl.constexpr, WANT_X: tl.constexpr, PREC: tl.constexpr):
+                   BLOCK: tl.constexpr, WANT_X: tl.constexpr, PREC: tl.constexpr, GX: tl.constexpr):
     pid = tl.program_id(0)
     acc_w1 = tl.zeros([IN, HID], dtype=tl.float32)
     acc_b1 = tl.zeros([HID], dtype=tl.float32)
@@ -172,8 +176,13 @@ def _backward_head(x_ptr, g_ptr, gx_ptr, part_ptr, w1, b1, w2, b2, w3, b3, n_row
         if WANT_X:
             cols = tl.arange(0, IN)
             dx = tl.dot(dz1, W1, input_precision=PREC)
-            tl.atomic_add(gx_ptr + rows[:, None] * n_in + cols[None, :], dx,
-                          mask=valid[:, None] & (cols[None, :] < n_in))
+            gx_mask = valid[:, None] & (cols[None, :] < n_in)
+            if GX == "store":
+                tl.store(gx_ptr + rows[:, None] * n_in + cols[None, :], dx, mask=gx_mask)
+            elif GX == "relaxed":
+                tl.atomic_add(gx_ptr + rows[:, None] * n_in + cols[None, :], dx, mask=gx_mask, sem="relaxed")
+            else:
+                tl.atomic_add(gx_ptr + rows[:, None] * n_in + cols[None, :], dx, mask=gx_mask)
     # One partial per program, in the parameters' order and layouts (see _layout).
     base = part_ptr + pid.to(tl.int64) * (n_hidden * n_in + n_hidden * n_hidden + n_out * n_hidden
                                           + 2 * n_hidden + n_out)
@@ -194,13 +203,15 @@ def _backward_head(x_ptr, g_ptr, gx_ptr, part_ptr, w1, b1, w2, b2, w3, b3, n_row
 def _backward_kernel(x_ptr, gx_ptr, dw1, db1, dw2, db2, dw3, db3, d_grad, d_part, aw1, ab1, aw2, ab2, aw3, ab3,
                      a_grad, a_part, n_rows, n_in, n_hidden, n_out_a, n_tiles, n_programs, first_head,
                      IN: tl.constexpr, HID: tl.constexpr, OUT: tl.constexpr, BLOCK: tl.constexpr,
-                     WANT_X: tl.constexpr, PREC: tl.constexpr):
+                     WANT_X: tl.constexpr, PREC: tl.constexpr, GX: tl.constexpr):
     if tl.program_id(1) + first_head == 0:
         _backward_head(x_ptr, d_grad, gx_ptr, d_part, dw1, db1, dw2, db2, dw3, db3, n_rows, n_in, n_hidden, 1,
-                       n_tiles, n_programs, IN, HID, OUT, BLOCK, WANT_X, PREC)
+                       n_tiles, n_programs, IN, HID, OUT, BLOCK, WANT_X, PREC, GX)
     else:
-        _backward_head(x_ptr, a_grad, gx_ptr, a_part, aw1, ab1, aw2, ab2, aw3, ab3, n_rows, n_in, n_hidden, n_out_a,
-                       n_tiles, n_programs, IN, HID, OUT, BLOCK, WANT_X, PREC)
+        # Under "store" with both heads, the albedo head writes the second half of the (2, N, in) buffer.
+        gx_a = gx_ptr + tl.program_id(1).to(tl.int64) * n_rows * n_in if GX == "store" else gx_ptr
+        _backward_head(x_ptr, a_grad, gx_a, a_part, aw1, ab1, aw2, ab2, aw3, ab3, n_rows, n_in, n_hidden, n_out_a,
+                       n_tiles, n_programs, IN, HID, OUT, BLOCK, WANT_X, PREC, GX)
 
 
 def _pad(n: int) -> int:
@@ -269,9 +280,15 @@ def heads_backward(feats: Tensor, density: Head, albedo: Head | None, grad_densi
     n, n_in = feats.shape
     n_hidden, n_out_a = d[0].shape[0], a[4].shape[0]
     wanted = [grad_density is not None, grad_albedo is not None]
-    grad_x = feats.new_zeros((n, n_in)) if want_x and any(wanted) else None
     if not any(wanted):
-        return grad_x, None, None
+        return None, None, None
+    both = all(wanted)
+    if not want_x:
+        gx = None
+    elif _GRAD_X == "store":  # every row is written: the buffer needs no zeros
+        gx = feats.new_empty((2, n, n_in)) if both else feats.new_empty((n, n_in))
+    else:
+        gx = feats.new_zeros((n, n_in))
     n_tiles = triton.cdiv(n, _BACKWARD_BLOCK) if n > 0 else 0
     programs = _programs(feats, n_tiles)
     d_grad = grad_density.contiguous().float() if grad_density is not None else feats
@@ -282,10 +299,11 @@ def heads_backward(feats: Tensor, density: Head, albedo: Head | None, grad_densi
         first = 0 if wanted[0] else 1
         with device_guard(feats):
             _backward_kernel[(programs, sum(wanted))](
-                feats, grad_x if grad_x is not None else feats, *d, d_grad, d_part, *a, a_grad, a_part,
+                feats, gx if gx is not None else feats, *d, d_grad, d_part, *a, a_grad, a_part,
                 n, n_in, n_hidden, n_out_a, n_tiles, programs, first, IN=_pad(n_in), HID=_pad(n_hidden),
-                OUT=MAX_OUT, BLOCK=_BACKWARD_BLOCK, WANT_X=grad_x is not None, PREC="tf32",
+                OUT=MAX_OUT, BLOCK=_BACKWARD_BLOCK, WANT_X=gx is not None, PREC="tf32", GX=_GRAD_X,
                 num_warps=_BACKWARD_WARPS)
+    grad_x = gx[0] + gx[1] if gx is not None and gx.dim() == 3 else gx
 
     def unpack(part: Tensor, head: list[Tensor]) -> list[Tensor]:
         flat = part.sum(0)
