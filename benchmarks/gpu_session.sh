@@ -20,7 +20,8 @@
 #   benchmarks/speed_ab.py: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever
 #   setting it ran (benchmarks/results/vae_precision_h200.md).
 # es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
-#   ES_PATCH, both at once; records named ${ES_NAME}_{ref,new}; compare them with benchmarks.records_ab.
+#   ES_PATCH, both at once, on the defaults (the fixed schedules: --variants fixed); records named
+#   ${ES_NAME}_{ref,new}; compare them with benchmarks.records_ab.
 # variants: the CUDA prior tests, then paper_speed.py once per VARIANTS entry "name:key=value,key=value" (config
 #   overrides, e.g. "vae32:priors.vae_dtype=float32 vaeauto:"), with V_ARGS; tags h200_<name>; carry outputs/gpu_refs.
 #   All variants run in one call, so their ratios hold. V_TESTS=0 leaves the tests out.
@@ -64,7 +65,7 @@ if [ "$mode" = es_ab ]; then
   for side in ref new; do
     dir=.; [ "$side" = ref ] && dir=/tmp/es_ref
     (cd "$dir" && early_stop_run "${ES_NAME:-es_ab}_$side" "/tmp/es_$side" "$out/early_stop_$side.log" \
-      --schedules "${ES_SCHEDULES:-bench-cpu}" --variants early) &
+      --schedules "${ES_SCHEDULES:-bench-cpu}" --variants fixed) &  # the defaults: the fixed schedule
   done
   wait
   exit 0

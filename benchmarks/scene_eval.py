@@ -110,8 +110,14 @@ def nerf_output(store: Store, key: str, render: VolumeRenderConfig, device: torc
     field, _, _ = load_module(store.stage_dir(key, "nerf") / NERF_FILE, NerfField, NerfConfig, device)
     cfg = VolumeRenderConfig(n_samples=render.n_samples, stratified=False, with_normals=False,
                              chunk_points=render.chunk_points)
-    return Reconstruction(lambda cams, r: render_volume(field, cams.to(device=device), r, r, cfg, 1.0),
-                          weighted_depth=True)
+
+    def render(cams: Cameras, r: int) -> RenderOutput:
+        # One view at a time: all novel views at once hold every ray's samples (~50 GiB at the paper's
+        # 256 per ray), which ran eight benchmark processes sharing an H200 out of memory.
+        cams = cams.to(device=device)
+        return RenderOutput.cat([render_volume(field, cams[i], r, r, cfg, 1.0) for i in range(len(cams))])
+
+    return Reconstruction(render, weighted_depth=True)
 
 
 def mesh_output(store: Store, key: str, texture_stage: str, device: torch.device) -> Reconstruction:

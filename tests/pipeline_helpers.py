@@ -39,6 +39,9 @@ def cli_overrides(cfg: PipelineConfig) -> list[str]:
         loop = getattr(cfg, stage).loop
         args += ["--set", f"{stage}.loop.steps={loop.steps}", "--set", f"{stage}.loop.checkpoint_every="
                  f"{loop.checkpoint_every}", "--set", f"{stage}.loop.log_every={loop.log_every}"]
+    grid = cfg.nerf.model.grid
+    args += ["--set", f"nerf.model.grid.start_step={grid.start_step}",
+             "--set", f"nerf.model.grid.update_steps={grid.update_steps}"]
     return args
 
 

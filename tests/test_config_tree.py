@@ -8,7 +8,7 @@ import pytest
 
 from morpheus_core.frequency import BandMask
 from morpheus_core.guidance_presets import PAPER_ROWS, paper_ablations
-from ops.config.presets import PRESETS, PipelineConfig, preset
+from ops.config.presets import PRESETS, PipelineConfig, preset, scaled_levels, with_steps
 from ops.config.tree import ConfigError, apply_overrides, flat_keys, from_dict, to_dict
 
 
@@ -31,6 +31,27 @@ def test_paper_preset_holds_the_papers_schedule() -> None:
     assert t.bounds(0) == (0.02, 0.98) and t.bounds(5000) == (0.02, 0.5)
 
 
+@pytest.mark.parametrize("steps", [1000, 500, 150, 37])
+def test_shortened_schedules_keep_the_level_schedule_shape(steps: int) -> None:
+    paper = preset("paper").nerf.model.grid
+    grid = with_steps(preset("paper"), steps, 10, 10).nerf.model.grid
+    full = next(s for s in range(10_001) if paper.levels_at(s) == paper.n_levels)
+    assert full == 6000  # threestudio's: 8 of 16 levels, one more every 500 steps from step 2000
+    short_full = next(s for s in range(steps + 1) if grid.levels_at(s) == grid.n_levels)
+    # all levels on at 60 % of the shortened run too, up to the rounding of one update interval
+    assert abs(short_full - 0.6 * steps) <= 8 * max(1, round(500 * steps / 10_000)) / 2 + 1
+    assert grid.levels_at(0) == paper.levels_at(0) == 8
+    assert (grid.n_levels, grid.log2_table_size) == (paper.n_levels, paper.log2_table_size)
+
+
+def test_level_schedule_factor_must_be_positive() -> None:
+    grid = preset("paper").nerf.model.grid
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="schedule factor"):
+            scaled_levels(grid, bad)
+    assert scaled_levels(grid, 1.0) == grid
+
+
 def test_overrides_are_typed_and_checked() -> None:
     cfg = preset("draft", ["nerf.loop.steps=7", "texture.guidance.r=0.4", "priors.kind=proxy", "seed=3",
                            "dmtet.grid=32", "dmtet.grid=null", "bake.write_obj=false"])
@@ -43,10 +64,10 @@ def test_overrides_are_typed_and_checked() -> None:
 
 
 def test_a_star_segment_sets_the_key_in_every_group() -> None:
-    cfg = preset("draft", ["*.loop.early_stop=false", "*.loop.early_stop_min_share=0.7"])
-    assert [s.loop.early_stop for s in (cfg.nerf, cfg.dmtet, cfg.texture)] == [False, False, False]
+    cfg = preset("draft", ["*.loop.early_stop=true", "*.loop.early_stop_min_share=0.7"])
+    assert [s.loop.early_stop for s in (cfg.nerf, cfg.dmtet, cfg.texture)] == [True, True, True]
     assert {s.loop.early_stop_min_share for s in (cfg.nerf, cfg.dmtet, cfg.texture)} == {0.7}
-    assert preset("draft", ["nerf.loop.early_stop=false"]).dmtet.loop.early_stop is True
+    assert preset("draft", ["nerf.loop.early_stop=true"]).dmtet.loop.early_stop is False
     for bad in ["*.loop.no_such_key=1", "*.*.*.*.*.*.*.*=1", "*.loop.early_stop=maybe"]:
         with pytest.raises(ConfigError):
             apply_overrides(cfg, [bad])

@@ -24,7 +24,8 @@ from ops.reporting.run_table import steps_run
 from tests.pipeline_helpers import PHOTOS, manifest, tiny_config
 from tests.test_optimise import Regression
 
-LOOP = LoopConfig(100, log_every=5, early_stop_patience=0.2, early_stop_min_share=0.5, early_stop_min_gain_db=0.1)
+LOOP = LoopConfig(100, log_every=5, early_stop=True, early_stop_patience=0.2, early_stop_min_share=0.5,
+                  early_stop_min_gain_db=0.1)
 
 
 def _history(values: list[float], every: int = 5, metric: str = "ref_psnr") -> list[dict[str, Any]]:
@@ -160,7 +161,10 @@ def test_whole_schedule_records_drop_only_the_early_stop_settings() -> None:
     assert config_hash(whole_schedule_record(other)) == config_hash(whole) != config_hash(other)
 
 
-FORCE_STOP = ("early_stop_min_share=0", "early_stop_patience=0.01", "early_stop_min_gain_db=1000")
+FORCE_STOP = ("early_stop=true", "early_stop_min_share=0", "early_stop_patience=0.01", "early_stop_min_gain_db=1000")
+
+
+HOLD_LEVELS = "nerf.model.grid.update_steps=100"  # the tiny NeRF's last hash-grid levels never switch on
 
 
 def _forced(stages: tuple[str, ...], *extra: str) -> Any:
@@ -169,7 +173,7 @@ def _forced(stages: tuple[str, ...], *extra: str) -> Any:
 
 def test_stages_stop_early_record_it_and_stay_fresh_only_for_their_settings(tmp_path: Path) -> None:
     store, photo = Store(tmp_path / "store"), PHOTOS / "mug.jpg"
-    cfg = _forced(("nerf", "dmtet"))
+    cfg = _forced(("nerf", "dmtet"), HOLD_LEVELS)
     outcome = run_photo(photo, store, cfg, "tiny", "mug", until="dmtet")
     assert outcome.error is None, outcome.error
     nerf, dmtet = manifest(store, "mug", "nerf"), manifest(store, "mug", "dmtet")
@@ -182,11 +186,22 @@ def test_stages_stop_early_record_it_and_stay_fresh_only_for_their_settings(tmp_
     saved = dmtet.metrics["steps_saved"]
     assert steps_run(outcome) == f"{planned - saved}/{planned} (-{saved / planned:.0%})"
     assert photo_status(photo, store, cfg, "mug")["dmtet"] == "fresh"
-    fixed = _forced(("nerf",), "dmtet.loop.early_stop=false")
+    fixed = _forced(("nerf",), "dmtet.loop.early_stop=false", HOLD_LEVELS)
     status = photo_status(photo, store, fixed, "mug")
     assert status["nerf"] == "fresh" and status["dmtet"] == "stale"  # it stopped under the settings it no longer has
-    nerf_off = tiny_config("nerf.loop.early_stop=false")
+    nerf_off = tiny_config("nerf.loop.early_stop=false", HOLD_LEVELS)
     assert photo_status(photo, store, nerf_off, "mug")["nerf"] == "fresh"  # the whole schedule satisfies any setting
+
+
+def test_the_nerf_stage_stops_only_once_every_level_is_on(tmp_path: Path) -> None:
+    cfg = _forced(("nerf",))
+    grid = cfg.nerf.model.grid
+    all_on = next(s for s in range(cfg.nerf.loop.steps) if grid.levels_at(s) == grid.n_levels)
+    assert 0 < all_on < cfg.nerf.loop.steps - 1  # the shortened schedule switches every level on
+    outcome = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", "mug", until="nerf")
+    assert outcome.error is None, outcome.error
+    nerf = manifest(Store(tmp_path / "store"), "mug", "nerf")
+    assert nerf.metrics["stopped_early"] is True and all_on <= nerf.metrics["steps_run"] < cfg.nerf.loop.steps
 
 
 def test_a_batch_records_each_object_s_stop(tmp_path: Path) -> None:

@@ -116,6 +116,12 @@ def test_camera_groups_render_as_separate_batches(device: torch.device) -> None:
         Cameras.cat([ref, Cameras(novel.c2w, novel.fov_y, novel.elevation, novel.azimuth, novel.distance, near=0.5)])
     with pytest.raises(ValueError, match="at least one"):
         Cameras.cat([])
+    joined = RenderOutput.cat([one, many])
+    for part, back in zip((one, many), joined.split([1, 3]), strict=True):
+        for name in ("rgb", "opacity", "depth", "normal"):
+            assert torch.equal(getattr(part, name), getattr(back, name))
+    with pytest.raises(ValueError, match="at least one render"):
+        RenderOutput.cat([])
 
 
 class TinyField(nn.Module):

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 
@@ -25,6 +26,13 @@ class RenderOutput:
             raise ValueError(f"sizes {list(sizes)} do not add up to the {self.rgb.shape[0]} rendered views")
         parts = [t.split(list(sizes)) for t in (self.rgb, self.opacity, self.depth, self.normal)]
         return [RenderOutput(*views) for views in zip(*parts, strict=True)]
+
+    @classmethod
+    def cat(cls, parts: Sequence[RenderOutput]) -> RenderOutput:
+        """One batch of every view of ``parts``, in order (the inverse of ``split``)."""
+        if not parts:
+            raise ValueError("RenderOutput.cat needs at least one render")
+        return cls(*(torch.cat([getattr(p, name) for p in parts]) for name in ("rgb", "opacity", "depth", "normal")))
 
     def rgb_chw(self) -> Tensor:
         """(B,3,H,W): the layout the guidance and the priors take."""

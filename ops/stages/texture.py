@@ -36,19 +36,11 @@ from ops.stages.dmtet import TEXTURE_FILE, load_mesh
 CODE_VERSION = "texture_refine-2"  # 2: the official loss balance (kept as existing stores hold it)
 
 
-def texture_loop(steps: int, checkpoint_every: int, log_every: int) -> LoopConfig:
-    """The texture stage's loop: the fixed schedule by default. Its reference view is fitted within
-    the first half of the steps while the 2D prior goes on improving the sides the photo does not
-    show, which the reference-view PSNR cannot see: stopping on it cost 0.1–0.2 dB GLB novel-view
-    PSNR in every paired run (``benchmarks/results/early_stop_h200.md``)."""
-    return LoopConfig(steps, checkpoint_every=checkpoint_every, log_every=log_every, early_stop=False)
-
-
 @dataclass(frozen=True)
 class TextureStageConfig:
     """Stage 2: the texture field's refinement on the fixed DMTet mesh under the hybrid guidance."""
 
-    loop: LoopConfig = field(default_factory=lambda: texture_loop(5000, 500, 50))
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(5000, checkpoint_every=500, log_every=50))
     resolution: int = 512
     """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
