@@ -1,6 +1,7 @@
 """The fused field-head kernels (``morpheus_core/geometry/mlp_triton.py``) against the modules, and
-a sweep of their launch sizes (rows per program, warps, backward programs per SM) and of how the
-backward's two heads meet in the feature gradient (``mlp_triton._GRAD_X``).
+a sweep of their launch sizes (rows per program, warps, backward programs per SM), of how the
+backward sums the weight gradients (``mlp_triton._WEIGHT_GRADS``) and of how its two heads meet in
+the feature gradient (``mlp_triton._GRAD_X``, the ``fused`` weight gradients only).
 
 The paper's heads (32 → 64 → 64 → 1 and → 3) on 2^19 and 2^22 rows of random features; forward
 and backward timed apart (CUDA events around 20 repeats after 3 warm-up calls). The modules run
@@ -29,6 +30,7 @@ from morpheus_core.geometry.nerf import NerfConfig, NerfField
 RESULTS = Path(__file__).parent / "results"
 FORWARD = [(64, 4), (128, 4), (128, 8), (256, 8)]
 BACKWARD = [(32, 4), (64, 4), (64, 8), (128, 8)]
+GEMM_BACKWARD = [(32, 4), (64, 4), (128, 4), (128, 8)]
 PROGRAMS_PER_SM = [4, 8]
 GRAD_X = ["store", "relaxed", "acq_rel"]
 
@@ -45,6 +47,15 @@ def cuda_ms(fn: Callable[[], object], repeats: int = 20, warmup: int = 3) -> flo
         end.synchronize()
         times.append(start.elapsed_time(end))
     return statistics.median(times)
+
+
+def cuda_ms_peak(fn: Callable[[], object]) -> tuple[float, float]:
+    """``cuda_ms`` and the allocator's peak (GiB) above what was allocated before the calls."""
+    torch.cuda.synchronize()
+    base = torch.cuda.memory_allocated()
+    torch.cuda.reset_peak_memory_stats()
+    ms = cuda_ms(fn)
+    return ms, (torch.cuda.max_memory_allocated() - base) / 2**30
 
 
 def sweep(rows: int) -> list[dict[str, object]]:
@@ -64,21 +75,28 @@ def sweep(rows: int) -> list[dict[str, object]]:
         out.append({"rows": rows, "path": f"modules, {'TF32' if tf32 else 'fp32'}", "fwd_bwd_ms": cuda_ms(modules)})
     torch.backends.cuda.matmul.allow_tf32 = False
     saved = (mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS, mlp_triton._BACKWARD_BLOCK,
-             mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X)
+             mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X, mlp_triton._WEIGHT_GRADS)
     try:
         for block, warps in FORWARD:
             mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS = block, warps
             ms = cuda_ms(lambda: mlp_triton.heads_forward(feats, density, albedo))
             out.append({"rows": rows, "path": "fused forward", "block": block, "warps": warps, "ms": ms})
+        mlp_triton._WEIGHT_GRADS = "gemm"
+        for block, warps in GEMM_BACKWARD:
+            mlp_triton._BACKWARD_BLOCK, mlp_triton._BACKWARD_WARPS = block, warps
+            ms, peak = cuda_ms_peak(lambda: mlp_triton.heads_backward(feats, density, albedo, grad_d, grad_a, True))
+            out.append({"rows": rows, "path": "fused backward, gemm weight grads", "block": block, "warps": warps,
+                        "ms": ms, "peak_gib": peak})
+        mlp_triton._WEIGHT_GRADS = "fused"
         for grad_x, (block, warps), per_sm in itertools.product(GRAD_X, BACKWARD, PROGRAMS_PER_SM):
             (mlp_triton._GRAD_X, mlp_triton._BACKWARD_BLOCK, mlp_triton._BACKWARD_WARPS,
              mlp_triton._PROGRAMS_PER_SM) = grad_x, block, warps, per_sm
-            ms = cuda_ms(lambda: mlp_triton.heads_backward(feats, density, albedo, grad_d, grad_a, True))
+            ms, peak = cuda_ms_peak(lambda: mlp_triton.heads_backward(feats, density, albedo, grad_d, grad_a, True))
             out.append({"rows": rows, "path": f"fused backward, {grad_x}", "block": block, "warps": warps,
-                        "programs_per_sm": per_sm, "ms": ms})
+                        "programs_per_sm": per_sm, "ms": ms, "peak_gib": peak})
     finally:
         (mlp_triton._FORWARD_BLOCK, mlp_triton._FORWARD_WARPS, mlp_triton._BACKWARD_BLOCK,
-         mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X) = saved
+         mlp_triton._BACKWARD_WARPS, mlp_triton._PROGRAMS_PER_SM, mlp_triton._GRAD_X, mlp_triton._WEIGHT_GRADS) = saved
     return out
 
 
@@ -87,13 +105,14 @@ def markdown(meta: dict[str, object], rows: list[dict[str, object]]) -> str:
              f"torch {meta['torch']}; command: `{meta['command']}`. Median of 20 CUDA-event timings after 3 "
              f"warm-up calls. The defaults: forward {meta['defaults']['forward']}, backward "
              f"{meta['defaults']['backward']}.", "",
-             "| rows | path | rows per program | warps | backward programs per SM | ms |",
-             "|---:|---|---:|---:|---:|---:|"]
+             "| rows | path | rows per program | warps | backward programs per SM | ms | peak GiB above inputs |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
     for r in rows:
         ms = r.get("ms", r.get("fwd_bwd_ms"))
         path = f"{r['path']} (fwd+bwd)" if "fwd_bwd_ms" in r else r["path"]
         lines.append(f"| 2^{int(r['rows']).bit_length() - 1} | {path} | "
-                     f"{r.get('block', '–')} | {r.get('warps', '–')} | {r.get('programs_per_sm', '–')} | {ms:.2f} |")
+                     f"{r.get('block', '–')} | {r.get('warps', '–')} | {r.get('programs_per_sm', '–')} | {ms:.2f} | "
+                     + (f"{r['peak_gib']:.2f} |" if "peak_gib" in r else "– |"))
     for n in sorted({int(r["rows"]) for r in rows}):
         fused = [r for r in rows if r["rows"] == n and "ms" in r]
         best_f = min((r for r in fused if r["path"] == "fused forward"), key=lambda r: r["ms"])
@@ -103,7 +122,7 @@ def markdown(meta: dict[str, object], rows: list[dict[str, object]]) -> str:
         lines.append(f"2^{n.bit_length() - 1} rows: best fused forward + backward {best_f['ms'] + best_b['ms']:.2f} ms "
                      f"(forward {best_f['block']}×{best_f['warps']}, "
                      f"{best_b['path']} {best_b['block']}×{best_b['warps']}, "
-                     f"{best_b['programs_per_sm']} per SM) against the modules ("
+                     f"{best_b.get('programs_per_sm', '–')} per SM) against the modules ("
                      + ", ".join(f"{k}: {v:.2f} ms" for k, v in mods.items()) + ").")
     return "\n".join(lines) + "\n"
 
@@ -122,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
             + " ".join(argv if argv is not None else [f"--tag {args.tag}"]),
             "defaults": {"forward": f"{mlp_triton._FORWARD_BLOCK}×{mlp_triton._FORWARD_WARPS}",
                          "backward": f"{mlp_triton._BACKWARD_BLOCK}×{mlp_triton._BACKWARD_WARPS}, "
-                                     f"{mlp_triton._PROGRAMS_PER_SM} per SM, {mlp_triton._GRAD_X}"}}
+                                     f"{mlp_triton._WEIGHT_GRADS} weight grads ({mlp_triton._PROGRAMS_PER_SM} per "
+                                     f"SM, {mlp_triton._GRAD_X} when fused)"}}
     stem = args.results / f"field_heads_{args.tag}"
     args.results.mkdir(parents=True, exist_ok=True)
     atomic_write_text(stem.with_suffix(".json"), json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")

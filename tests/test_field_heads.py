@@ -125,10 +125,34 @@ def test_backward_is_deterministic_and_skips_unused_heads() -> None:
         mlp_triton.heads_backward(x, pd, None, grad_d, torch.ones(500, 3, device=DEVICE), True)
 
 
+@pytest.mark.parametrize("n", [203, 64, 1, 0])
+def test_weight_gradient_modes_agree(n: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Matmuls over the stored activations (``gemm``) and per-program partials (``fused``) give the
+    same gradients, with both heads, either alone, with and without the feature gradient."""
+    pd, pa, x, grad_d = problem(n, 32, 64, 1, seed=13)
+    grad_a = torch.randn(n, 3, generator=torch.Generator().manual_seed(14)).to(DEVICE)
+    for gd, ga, want_x in [(grad_d, grad_a, True), (grad_d, None, True), (None, grad_a, True),
+                           (grad_d, grad_a, False)]:
+        monkeypatch.setattr(mlp_triton, "_WEIGHT_GRADS", "fused")
+        want = mlp_triton.heads_backward(x, pd, pa, gd, ga, want_x)
+        monkeypatch.setattr(mlp_triton, "_WEIGHT_GRADS", "gemm")
+        got = mlp_triton.heads_backward(x, pd, pa, gd, ga, want_x)
+        assert (got[0] is None) == (not want_x)
+        if want_x:
+            assert_near(got[0], want[0], rel=1e-5)
+        for got_head, want_head in zip(got[1:], want[1:], strict=True):
+            assert (got_head is None) == (want_head is None)
+            for a, b in zip(got_head or [], want_head or [], strict=True):
+                assert_near(a, b, rel=REL if CUDA else 1e-4)  # CUDA: TF32 products against the matmuls
+        if n:
+            assert all(float(g.abs().sum()) > 0 for g in (got[1] or got[2])[:2])
+
+
 @pytest.mark.parametrize("mode", ["store", "relaxed"])
 def test_feature_gradient_modes_agree(mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each way the heads' feature gradients meet gives the reference's (acq_rel atomics) result,
-    with both heads, with either alone, and with a row count off the block size."""
+    """Each way the fused weight gradients' heads meet in the feature gradient gives the reference's
+    (acq_rel atomics) result, with both heads, with either alone, and with a row count off the block size."""
+    monkeypatch.setattr(mlp_triton, "_WEIGHT_GRADS", "fused")
     pd, pa, x, grad_d = problem(203, 32, 64, 1, seed=11)
     grad_a = torch.randn(203, 3, generator=torch.Generator().manual_seed(12)).to(DEVICE)
     for gd, ga in [(grad_d, grad_a), (grad_d, None), (None, grad_a)]:

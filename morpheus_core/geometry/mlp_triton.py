@@ -44,6 +44,13 @@ _BACKWARD_BLOCK = 64
 _FORWARD_WARPS = 4
 _BACKWARD_WARPS = 4
 _PROGRAMS_PER_SM = 8
+_WEIGHT_GRADS = "fused"
+"""How the backward sums the weight gradients over the rows: ``fused`` (a fixed number of programs,
+each summing its blocks in registers into one partial) or ``gemm`` (one program per block of rows
+stores the block's hidden activations and their gradients, 4 × hidden floats per row and head, and
+matmuls sum Hᵀ·dZ over all rows, as tcnn's fully fused MLP does). On the H200 the fused backward
+takes ~7× its forward (``field_heads_h200_gradx.md``); ``gemm`` is the candidate to replace it, not yet
+timed on a GPU: ``benchmarks/field_heads_kernel.py`` times both."""
 _GRAD_X = "store"
 """How the two heads' feature gradients meet: ``store`` (each head stores its own into one half of a
 (2, N, in) buffer, summed after), ``relaxed`` or ``acq_rel`` (both add into one zeroed buffer with
@@ -214,6 +221,46 @@ def _backward_kernel(x_ptr, gx_ptr, dw1, db1, dw2, db2, dw3, db3, d_grad, d_part
                        n_tiles, n_programs, IN, HID, OUT, BLOCK, WANT_X, PREC, GX)
 
 
+@_jit
+def _row_grads_head(x_ptr, g_ptr, gx_ptr, act_ptr, w1, b1, w2, b2, w3, b3, n_rows, n_in, n_hidden, n_out,
+                    IN: tl.constexpr, HID: tl.constexpr, OUT: tl.constexpr, BLOCK: tl.constexpr,
+                    WANT_X: tl.constexpr, PREC: tl.constexpr):
+    """One block of rows: store h1, h2, dz1, dz2 (the planes of ``act_ptr``) and the feature gradient."""
+    rows, valid, x = _rows(x_ptr, tl.program_id(0), n_rows, n_in, IN, BLOCK)
+    a1, a2, W1, W2 = _pre_activations(x, w1, b1, w2, b2, n_in, n_hidden, IN, HID, PREC)
+    W3 = _weight(w3, n_out, n_hidden, OUT, HID)
+    o = tl.arange(0, OUT)
+    g = tl.load(g_ptr + rows[:, None] * n_out + o[None, :], mask=valid[:, None] & (o[None, :] < n_out), other=0.0)
+    dz2 = tl.where(a2 > 0.0, tl.dot(g, W3, input_precision=PREC), 0.0)
+    dz1 = tl.where(a1 > 0.0, tl.dot(dz2, W2, input_precision=PREC), 0.0)
+    h = tl.arange(0, HID)
+    offs = rows[:, None] * n_hidden + h[None, :]
+    mask = valid[:, None] & (h[None, :] < n_hidden)
+    plane = n_rows.to(tl.int64) * n_hidden
+    tl.store(act_ptr + offs, tl.maximum(a1, 0.0), mask=mask)
+    tl.store(act_ptr + plane + offs, tl.maximum(a2, 0.0), mask=mask)
+    tl.store(act_ptr + 2 * plane + offs, dz1, mask=mask)
+    tl.store(act_ptr + 3 * plane + offs, dz2, mask=mask)
+    if WANT_X:
+        cols = tl.arange(0, IN)
+        dx = tl.dot(dz1, W1, input_precision=PREC)
+        tl.store(gx_ptr + rows[:, None] * n_in + cols[None, :], dx, mask=valid[:, None] & (cols[None, :] < n_in))
+
+
+@_jit(do_not_specialize=("n_rows", "first_head"))
+def _row_grads_kernel(x_ptr, gx_ptr, dw1, db1, dw2, db2, dw3, db3, d_grad, d_act, aw1, ab1, aw2, ab2, aw3, ab3,
+                      a_grad, a_act, n_rows, n_in, n_hidden, n_out_a, first_head, IN: tl.constexpr,
+                      HID: tl.constexpr, OUT: tl.constexpr, BLOCK: tl.constexpr, WANT_X: tl.constexpr,
+                      PREC: tl.constexpr):
+    if tl.program_id(1) + first_head == 0:
+        _row_grads_head(x_ptr, d_grad, gx_ptr, d_act, dw1, db1, dw2, db2, dw3, db3, n_rows, n_in, n_hidden, 1,
+                        IN, HID, OUT, BLOCK, WANT_X, PREC)
+    else:
+        gx_a = gx_ptr + tl.program_id(1).to(tl.int64) * n_rows * n_in  # both heads: the second half
+        _row_grads_head(x_ptr, a_grad, gx_a, a_act, aw1, ab1, aw2, ab2, aw3, ab3, n_rows, n_in, n_hidden,
+                        n_out_a, IN, HID, OUT, BLOCK, WANT_X, PREC)
+
+
 def _pad(n: int) -> int:
     return max(16, triton.next_power_of_2(n))
 
@@ -282,6 +329,8 @@ def heads_backward(feats: Tensor, density: Head, albedo: Head | None, grad_densi
     wanted = [grad_density is not None, grad_albedo is not None]
     if not any(wanted):
         return None, None, None
+    if _WEIGHT_GRADS == "gemm":
+        return _backward_gemm(feats, d, a, grad_density, grad_albedo, want_x)
     both = all(wanted)
     if not want_x:
         gx = None
@@ -311,3 +360,29 @@ def heads_backward(feats: Tensor, density: Head, albedo: Head | None, grad_densi
 
     return (grad_x, unpack(d_part, d) if wanted[0] else None,
             unpack(a_part, a) if wanted[1] else None)
+
+
+def _backward_gemm(feats: Tensor, d: list[Tensor], a: list[Tensor], grad_density: Tensor | None,
+                   grad_albedo: Tensor | None, want_x: bool) -> tuple[Tensor | None, list[Tensor] | None,
+                                                                     list[Tensor] | None]:
+    """``heads_backward`` with the weight gradients as matmuls over all rows (``_WEIGHT_GRADS = "gemm"``)."""
+    n, n_in = feats.shape
+    n_hidden = d[0].shape[0]
+    grads = [g.contiguous().float() if g is not None else None for g in (grad_density, grad_albedo)]
+    wanted = [g is not None for g in grads]
+    acts = [feats.new_empty((4, n, n_hidden)) if w else feats for w in wanted]
+    gx = feats.new_empty((sum(wanted), n, n_in) if sum(wanted) > 1 else (n, n_in)) if want_x else None
+    if n > 0:
+        with device_guard(feats):
+            _row_grads_kernel[(triton.cdiv(n, _BACKWARD_BLOCK), sum(wanted))](
+                feats, gx if gx is not None else feats, *d, grads[0] if wanted[0] else feats, acts[0], *a,
+                grads[1] if wanted[1] else feats, acts[1], n, n_in, n_hidden, a[4].shape[0], 0 if wanted[0] else 1,
+                IN=_pad(n_in), HID=_pad(n_hidden), OUT=MAX_OUT, BLOCK=_BACKWARD_BLOCK, WANT_X=gx is not None,
+                PREC="tf32", num_warps=_BACKWARD_WARPS)
+
+    def head_grads(g: Tensor, act: Tensor) -> list[Tensor]:
+        h1, h2, dz1, dz2 = act
+        return [dz1.T @ feats, dz1.sum(0), dz2.T @ h1, dz2.sum(0), g.T @ h2, g.sum(0)]
+
+    grad_x = gx[0] + gx[1] if gx is not None and gx.dim() == 3 else gx
+    return (grad_x, *(head_grads(g, act) if g is not None else None for g, act in zip(grads, acts, strict=True)))
