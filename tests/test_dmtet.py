@@ -20,7 +20,7 @@ from morpheus_core.geometry.marching_tets import (
     marching_tets,
     require_surface,
 )
-from morpheus_core.geometry.mesh import Mesh, edge_face_counts, surface_area, unique_edges
+from morpheus_core.geometry.mesh import Mesh, surface_area
 from morpheus_core.geometry.tet_surface import (
     FACES_PER_CELL_AREA,
     DMTetConfig,
@@ -50,9 +50,9 @@ def test_sphere_at_grid_64_is_watertight_outward_and_accurate(cache_dir: Path, d
     mesh = model()
     assert mesh.vertices.device.type == device.type and torch.isfinite(mesh.vertices).all()
     mesh = mesh.to("cpu")
-    _, counts = edge_face_counts(mesh)
+    counts = mesh.topology.edge_counts
     assert (counts == 2).all()  # closed 2-manifold edges
-    edges = unique_edges(mesh)
+    edges = mesh.topology.edge_vertices
     assert mesh.num_vertices - edges.shape[0] + mesh.num_faces == 2  # Euler: a topological sphere
     tm = to_trimesh(mesh)
     assert tm.is_watertight and tm.is_winding_consistent

@@ -15,7 +15,6 @@ import pytest
 import torch
 
 from morpheus_core.geometry.marching_tets import TRIANGLE_COUNT, marching_tets
-from morpheus_core.geometry.mesh import edge_face_counts
 from tests.meshes import make_dmtet, signed_volume, sphere, to_trimesh
 
 
@@ -67,7 +66,7 @@ def test_plane_through_grid_vertices_welds_to_an_exact_box(cache_dir: Path, devi
     area = torch.linalg.cross(*(mesh.face_vertices()[:, 1:] - mesh.face_vertices()[:, :1]).unbind(1), dim=-1)
     assert torch.isfinite(mesh.vertices).all()
     assert area.norm(dim=-1).min() > 1e-4  # no zero-area triangles after welding
-    _, counts = edge_face_counts(mesh)
+    counts = mesh.topology.edge_counts
     assert (counts == 2).all()
     tm = to_trimesh(mesh)
     assert tm.is_winding_consistent
@@ -93,7 +92,7 @@ def test_sphere_with_exact_zeros_at_vertices(cache_dir: Path) -> None:
     fv = mesh.face_vertices().detach()
     area = torch.linalg.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0], dim=-1).norm(dim=-1)
     assert area.min() > 1e-8
-    _, counts = edge_face_counts(mesh)
+    counts = mesh.topology.edge_counts
     assert (counts == 2).all()
     assert to_trimesh(mesh).is_winding_consistent
     assert abs(signed_volume(mesh) / (4 / 3 * math.pi * 0.75**3) - 1) < 0.05
@@ -122,7 +121,7 @@ def test_shape_larger_than_the_box_is_capped_and_closed(cache_dir: Path) -> None
         model.init_from_sdf(sphere(1.2))
     mesh = model()
     assert (mesh.vertices.abs() <= 1.0 + 1e-6).all()
-    _, counts = edge_face_counts(mesh)
+    counts = mesh.topology.edge_counts
     assert (counts == 2).all()
     assert to_trimesh(mesh).is_watertight
     # Without closing, the surface runs into the box and stays open.
@@ -130,5 +129,5 @@ def test_shape_larger_than_the_box_is_capped_and_closed(cache_dir: Path) -> None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         open_model.init_from_sdf(sphere(1.2))
-    _, counts = edge_face_counts(open_model())
+    counts = open_model().topology.edge_counts
     assert (counts == 1).any()

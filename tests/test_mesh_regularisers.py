@@ -8,14 +8,15 @@ import pytest
 import torch
 import trimesh
 
+from morpheus_core.geometry import mesh as mesh_module
 from morpheus_core.geometry.mesh import (
     Mesh,
-    edge_face_counts,
+    MeshIndexError,
     interior_face_pairs,
     laplacian_smoothness,
+    mesh_topology,
     normal_consistency,
     surface_area,
-    unique_edges,
 )
 from morpheus_core.geometry.winding import winding_number
 
@@ -138,15 +139,15 @@ def test_degenerate_meshes_stay_finite(device: torch.device) -> None:
 
 def test_connectivity_helpers() -> None:
     sphere = _icosphere(2)
-    edges = unique_edges(sphere)
+    edges = sphere.topology.edge_vertices
     assert edges.shape[0] == 3 * sphere.num_faces // 2
     assert sphere.num_vertices - edges.shape[0] + sphere.num_faces == 2
     assert (edges[:, 0] < edges[:, 1]).all()
-    _, counts = edge_face_counts(sphere)
+    counts = sphere.topology.edge_counts
     assert (counts == 2).all()
     grid = _grid(4)
-    _, counts = edge_face_counts(grid)
-    assert int((counts == 1).sum()) == 16 and int((counts == 2).sum()) == unique_edges(grid).shape[0] - 16
+    counts = grid.topology.edge_counts
+    assert int((counts == 1).sum()) == 16 and int((counts == 2).sum()) == grid.topology.edge_vertices.shape[0] - 16
     # Each interior pair shares exactly one edge.
     pairs = interior_face_pairs(sphere)
     shared = [len(set(sphere.faces[a].tolist()) & set(sphere.faces[b].tolist())) for a, b in pairs.tolist()]
@@ -182,3 +183,49 @@ def test_winding_number_is_one_inside_and_zero_outside_a_closed_mesh() -> None:
     assert torch.allclose(w[margin & ~inside], torch.zeros(1), atol=1e-4)
     flipped = Mesh(mesh.vertices, mesh.faces.flip(-1))  # inward winding: −1 inside
     assert torch.allclose(winding_number(flipped, pts[margin & inside]), -torch.ones(1), atol=1e-4)
+
+
+def test_one_topology_per_mesh_serves_render_and_regularisers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A DMTet step renders and regularises one mesh; a texture step renders the same mesh thousands of
+    times: the edge sort and index check (host reads on CUDA) happen once per mesh, not per use."""
+    from morpheus_core.cameras import orbit
+    from morpheus_core.render.mesh_renderer import render_mesh
+
+    built = []
+    real = mesh_module.mesh_topology
+    monkeypatch.setattr(mesh_module, "mesh_topology", lambda *a: built.append(a) or real(*a))
+    mesh = _icosphere(2).to(dtype=torch.float32)
+    cams = orbit([10.0, 30.0], [0.0, 120.0])
+    for _ in range(3):
+        render_mesh(mesh, cams, 24, 24, lambda p: p.abs())
+    laplacian_smoothness(mesh), normal_consistency(mesh), interior_face_pairs(mesh)
+    assert len(built) == 1
+    assert len(Mesh(mesh.vertices, mesh.faces).topology.edge_counts) == 3 * mesh.num_faces // 2
+    assert len(built) == 2  # a new mesh is a new topology
+
+
+def test_topology_rejects_bad_indices_and_matches_a_brute_force_count() -> None:
+    g = torch.Generator().manual_seed(3)
+    faces = torch.randint(0, 12, (40, 3), generator=g)
+    topo = mesh_topology(faces, 12)
+    counts = {}
+    for f in faces.tolist():
+        for k in range(3):
+            e = tuple(sorted((f[k], f[(k + 1) % 3])))
+            counts[e] = counts.get(e, 0) + 1
+    got = {tuple(e): c for e, c in zip(topo.edge_vertices.tolist(), topo.edge_counts.tolist(), strict=True)}
+    assert got == counts
+    for bad_index, shown in ((12, r"\[0, 12\), got \[0, 12\]"), (-1, r"got \[-1, ")):
+        bad = faces.clone()
+        bad[5, 1] = bad_index
+        with pytest.raises(MeshIndexError, match=shown):
+            mesh_topology(bad, 12)
+    with pytest.raises(MeshIndexError, match="int64"):
+        mesh_topology(faces.int(), 12)
+
+
+def test_a_mesh_made_in_inference_mode_has_a_topology() -> None:
+    with torch.inference_mode():
+        mesh = _octahedron()
+        assert float(normal_consistency(mesh)) == pytest.approx(2 / 3, rel=1e-12)
+    assert mesh.topology.is_current() and mesh.topology.edge_counts.shape == (12,)

@@ -19,7 +19,7 @@ import torch
 from PIL import Image
 
 from morpheus_core.cameras import orbit, reference_camera, sample_orbit
-from morpheus_core.geometry.mesh import Mesh, edge_face_counts
+from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.priors.proxy.shape import EmptySilhouetteError, InflatedProxy, InflationConfig, from_reference_folder
 from ops.intake.prepare import prepare_reference
@@ -117,7 +117,7 @@ def _silhouette(proxy: InflatedProxy, size: int) -> np.ndarray:
 
 
 def _assert_watertight(mesh: Mesh) -> None:
-    _, counts = edge_face_counts(mesh)
+    counts = mesh.topology.edge_counts
     assert mesh.num_faces > 0
     assert bool((counts == 2).all()), f"{int((counts != 2).sum())} edges not shared by exactly two faces"
 

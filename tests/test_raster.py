@@ -9,8 +9,9 @@ import torch
 import trimesh
 
 from morpheus_core.cameras import orbit
+from morpheus_core.geometry.mesh import Mesh, mesh_topology
 from morpheus_core.render.antialias import antialias, silhouette_crossings
-from morpheus_core.render.raster import RasterConfig, RasterInputError, edge_topology, interpolate, rasterize
+from morpheus_core.render.raster import RasterConfig, RasterInputError, interpolate, rasterize
 
 NEAR_W = RasterConfig().near_w
 MIN_AREA = RasterConfig().min_area_px
@@ -198,16 +199,52 @@ def test_antialiased_mask_is_hard_mask_away_from_the_silhouette(device: torch.de
 
 
 def test_edge_topology_of_a_closed_mesh() -> None:
-    _, faces = icosphere(2)
-    topo = edge_topology(faces)
-    assert topo.vertices.shape[0] == faces.shape[0] * 3 // 2  # closed manifold: E = 3F/2
-    assert (topo.faces >= 0).all() and not topo.nonmanifold.any()
+    vertices, faces = icosphere(2)
+    topo = mesh_topology(faces, vertices.shape[0])
+    assert topo.edge_vertices.shape[0] == faces.shape[0] * 3 // 2  # closed manifold: E = 3F/2
+    assert (topo.edge_faces >= 0).all() and not topo.nonmanifold.any() and (topo.edge_counts == 2).all()
     # Each edge's two faces really contain both end points.
     for k in range(2):
-        tri = faces[topo.faces[:, k]]
-        assert ((tri == topo.vertices[:, :1]).any(1) & (tri == topo.vertices[:, 1:]).any(1)).all()
-    open_topo = edge_topology(faces[1:])
-    assert (open_topo.faces[:, 1] < 0).sum() == 3
+        tri = faces[topo.edge_faces[:, k]]
+        assert ((tri == topo.edge_vertices[:, :1]).any(1) & (tri == topo.edge_vertices[:, 1:]).any(1)).all()
+    open_topo = mesh_topology(faces[1:], vertices.shape[0])
+    assert (open_topo.edge_faces[:, 1] < 0).sum() == 3 and (open_topo.edge_counts == 1).sum() == 3
+
+
+def test_a_mesh_topology_gives_the_same_fragments_and_gradients(device: torch.device) -> None:
+    """Rasterising through ``Mesh.topology`` (checked once, edges reused) equals the plain-faces path:
+    ids, barycentrics, anti-aliased mask and the vertex gradient through the silhouette."""
+    g = torch.Generator().manual_seed(11)
+    vertices, faces = icosphere(3)
+    vertices = (vertices * (1 + 0.2 * torch.rand(vertices.shape[0], 1, generator=g, dtype=torch.float64))).float()
+    mesh = Mesh(vertices.to(device), faces.to(device))
+    w2c = orbit([25.0, -10.0], [70.0, 250.0]).world_to_clip().to(device)
+    outs = []
+    for faces_in in (mesh.faces, mesh.topology):
+        v = mesh.vertices.clone().requires_grad_(True)
+        frags = rasterize(to_clip(v, w2c), faces_in, 48, 48)
+        soft = antialias(frags.mask, frags)
+        weight = torch.rand(soft.shape, generator=g.manual_seed(5)).to(device)
+        (grad,) = torch.autograd.grad((soft * weight).sum(), v)
+        outs.append((frags, soft, grad))
+    (a, soft_a, grad_a), (b, soft_b, grad_b) = outs
+    assert torch.equal(a.face_id, b.face_id) and torch.equal(a.bary, b.bary)
+    assert torch.equal(soft_a, soft_b) and torch.equal(grad_a, grad_b) and grad_a.abs().sum() > 0
+    assert b.edges is mesh.topology
+
+
+def test_a_stale_or_foreign_topology_is_refused() -> None:
+    vertices, faces = icosphere(1)
+    mesh = Mesh(vertices.float(), faces.clone())
+    topo = mesh.topology
+    clip = to_clip(mesh.vertices, orbit([10.0], [20.0]).world_to_clip())
+    with pytest.raises(RasterInputError, match="for 42 vertices"):
+        rasterize(clip[:, :-1], topo, 16, 16)
+    mesh.faces[0] = mesh.faces[0].flip(0)  # in place: the cached topology no longer describes the faces
+    with pytest.raises(RasterInputError, match="changed in place"):
+        rasterize(clip, topo, 16, 16)
+    assert mesh.topology is not topo and mesh.topology.is_current()  # the mesh rebuilds its own
+    rasterize(clip, mesh.topology, 16, 16)
 
 
 def test_back_face_culling() -> None:

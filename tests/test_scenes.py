@@ -24,7 +24,6 @@ from benchmarks.scenes import (
     make_scenes,
 )
 from morpheus_core.cameras import reference_camera
-from morpheus_core.geometry.mesh import edge_face_counts
 from morpheus_core.imaging import bbox, object_high_frequency_ratio
 from morpheus_core.render.textured import TexturedMesh, render_textured
 from ops.intake.prepare import prepare_reference
@@ -81,7 +80,7 @@ def test_mesh_is_closed_outward_and_inside_the_grid(scenes: dict[str, Scene], na
     assert mesh.vertices.abs().max() < MAX_EXTENT
 
     welded, _ = mesh.welded()
-    _, counts = edge_face_counts(welded)
+    counts = welded.topology.edge_counts
     assert (counts == 2).all(), f"{name}: {(counts != 2).sum().item()} edges not shared by exactly two faces"
     faces = welded.faces
     # Consistent winding: each directed edge once (its reverse belongs to the neighbour).

@@ -327,3 +327,37 @@ def test_graphed_sample_buffers_refuse_a_field_whose_parameters_they_cannot_see(
     budget = SampleBudget(graphed=True)
     with pytest.raises(TypeError, match=r"nn\.Module"):
         budget.evaluator("render", ConstantSphere(1.0), False, 1024)
+
+
+@pytest.mark.parametrize("seed", [1, secrets.randbits(31)])
+def test_no_grad_renders_in_ray_chunks_equal_one_pass_and_stay_bounded(seed: int, device: torch.device,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Evaluation and previews render in ``chunk_rays`` slices (bounded memory) with the same jitter and
+    the same pixels as one pass; a training render (with gradients) still takes one pass."""
+    import morpheus_core.render.volume as volume
+
+    g = torch.Generator().manual_seed(seed)
+    field = small_nerf(seed).to(device)
+    cams = sample_orbit(3, generator=g).to(device)
+    grid = OccupancyGrid(OccupancyGridConfig(resolution=16, density_threshold=1e-3), field.bbox_radius).to(device)
+    grid.refresh(field, g)
+    chunk = int(torch.randint(50, 400, (1,), generator=g))
+    passes: list[int] = []
+    real = volume._composite
+    monkeypatch.setattr(volume, "_composite", lambda q, keep, *a: passes.append(keep.shape[0]) or real(q, keep, *a))
+    renders = []
+    for rays in (10**9, chunk):
+        config = VolumeRenderConfig(n_samples=24, with_normals=True, normal_weight_threshold=0.0, chunk_rays=rays)
+        with torch.no_grad():
+            renders.append(render_volume(field, cams, 20, 18, config, 1.0, grid, torch.Generator().manual_seed(7)))
+    whole, sliced = renders
+    assert passes[0] == 3 * 20 * 18 and len(passes) == 1 + -(-3 * 20 * 18 // chunk) and max(passes[1:]) <= chunk
+    for name in ("rgb", "opacity", "depth", "normal"):
+        torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), rtol=1e-5, atol=1e-6)
+    assert 0 < float(whole.opacity.mean()) < 1
+    passes.clear()
+    config = VolumeRenderConfig(n_samples=24, with_normals=False, chunk_rays=chunk)
+    trained = render_volume(field, cams, 20, 18, config, 1.0, grid, torch.Generator().manual_seed(7))
+    assert passes == [3 * 20 * 18] and trained.rgb.requires_grad
+    with pytest.raises(ValueError, match="chunk_rays"):
+        VolumeRenderConfig(chunk_rays=0)

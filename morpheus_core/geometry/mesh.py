@@ -18,6 +18,75 @@ def safe_normalize(v: Tensor, eps: float = _NORMAL_EPS) -> Tensor:
     return v * torch.rsqrt((v * v).sum(-1, keepdim=True).clamp_min(eps))
 
 
+class MeshIndexError(ValueError):
+    """A face list that is not (F, 3) int64 or indexes outside [0, number of vertices)."""
+
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """The connectivity of a face list, computed once and shared by everything that needs it (the
+    rasteriser's index check and silhouette edges, the Laplacian and normal-consistency regularisers,
+    the watertight check): ``faces`` (F, 3) int64 checked to index ``num_vertices`` vertices, the
+    unique undirected edges ``edge_vertices`` (E, 2) with i < j, up to two adjacent faces
+    ``edge_faces`` (E, 2) (-1 where absent) and ``edge_counts`` (E,), the faces per edge (2 everywhere
+    on a closed manifold). ``faces_version`` is the faces tensor's version counter when this was
+    built: a user that changes the faces in place gets a new topology (``Mesh.topology``) or an error
+    (the rasteriser), never a stale one."""
+
+    faces: Tensor
+    num_vertices: int
+    edge_vertices: Tensor
+    edge_faces: Tensor
+    edge_counts: Tensor
+    faces_version: int
+
+    @property
+    def nonmanifold(self) -> Tensor:
+        """(E,) edges shared by more than two faces."""
+        return self.edge_counts > 2
+
+    @property
+    def interior(self) -> Tensor:
+        """(E,) edges with exactly two faces: the ones with a dihedral angle."""
+        return self.edge_counts == 2
+
+    def is_current(self) -> bool:
+        return self.faces_version == _version(self.faces)
+
+
+def _version(faces: Tensor) -> int:
+    # Inference tensors keep no version counter (and cannot be changed in place outside inference mode).
+    return -1 if faces.is_inference() else faces._version
+
+
+def mesh_topology(faces: Tensor, num_vertices: int) -> MeshTopology:
+    """Check ``faces`` (F, 3) int64 against ``num_vertices`` and find its unique edges (one sort of
+    packed 1-D keys). Two host reads: the index range, then the edge count (the GPU is idle by then)."""
+    if faces.dim() != 2 or faces.shape[-1] != 3:
+        raise MeshIndexError(f"faces must be (F, 3), got {tuple(faces.shape)}")
+    if faces.dtype != torch.int64:
+        raise MeshIndexError(f"faces must be int64, got {faces.dtype}")
+    num_faces, device = faces.shape[0], faces.device
+    version = _version(faces)
+    if num_faces == 0:
+        empty = torch.zeros(0, 2, dtype=torch.int64, device=device)
+        return MeshTopology(faces, num_vertices, empty, empty.clone(), torch.zeros(0, dtype=torch.int64,
+                                                                                   device=device), version)
+    a = faces.reshape(-1)
+    b = faces.roll(-1, 1).reshape(-1)  # corners 1, 2, 0; a list index would be a host copy (a sync)
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    lowest, highest = torch.stack([lo.min(), hi.max()]).tolist()  # the index check's one host read
+    if lowest < 0 or highest >= num_vertices:
+        raise MeshIndexError(f"face indices must lie in [0, {num_vertices}), got [{lowest}, {highest}]")
+    keys, order = torch.sort(lo * num_vertices + hi, stable=True)
+    owner = torch.arange(num_faces, device=device).repeat_interleave(3)[order]
+    unique, counts = torch.unique_consecutive(keys, return_counts=True)
+    first = torch.cumsum(counts, 0) - counts
+    second = torch.where(counts >= 2, owner[(first + 1).clamp(max=keys.numel() - 1)], -1)
+    return MeshTopology(faces, num_vertices, torch.stack([unique // num_vertices, unique % num_vertices], 1),
+                        torch.stack([owner[first], second], 1), counts, version)
+
+
 @dataclass(frozen=True)
 class Mesh:
     """``vertices`` (V, 3) float, ``faces`` (F, 3) int64, counter-clockwise seen from outside."""
@@ -41,6 +110,17 @@ class Mesh:
     def num_faces(self) -> int:
         return int(self.faces.shape[0])
 
+    @property
+    def topology(self) -> MeshTopology:
+        """Edges and index check, built on first use and kept with the mesh: the texture stage renders
+        one mesh for thousands of steps, the DMTet stage renders and regularises each step's mesh with
+        one edge sort. Rebuilt if the faces were changed in place."""
+        cached = self.__dict__.get("_topology")
+        if cached is None or not cached.is_current():
+            cached = mesh_topology(self.faces, self.num_vertices)
+            object.__setattr__(self, "_topology", cached)  # a cache, not state: frozen for the fields only
+        return cached
+
     def face_vertices(self) -> Tensor:
         """(F, 3, 3): the corner positions of every face."""
         return gather_rows(self.vertices, self.faces)
@@ -63,29 +143,9 @@ class Mesh:
         return Mesh(self.vertices.to(device=device, dtype=dtype), self.faces.to(device=device))
 
 
-# --- Connectivity and geometry regularisers (DMTet stage: Laplacian smoothness, normal consistency).
-# The SDF sign-change regulariser acts on the tet grid, not on a mesh: it lives in tet_surface.py.
-# Topology changes every step as the SDF moves, so adjacency is recomputed per call (sorts, O(F log F)).
-
-
-def _face_edge_keys(faces: Tensor, num_vertices: int) -> Tensor:
-    """(3F,) int64 key min·V + max of the undirected edge k of face f at position 3f + k."""
-    a = faces
-    b = faces.roll(-1, dims=1)
-    return (torch.minimum(a, b) * num_vertices + torch.maximum(a, b)).reshape(-1)
-
-
-def unique_edges(mesh: Mesh) -> Tensor:
-    """(E, 2) int64 undirected edges, i < j, each once."""
-    keys = torch.unique(_face_edge_keys(mesh.faces, mesh.num_vertices))
-    return torch.stack([torch.div(keys, mesh.num_vertices, rounding_mode="floor"), keys % mesh.num_vertices], -1)
-
-
-def edge_face_counts(mesh: Mesh) -> tuple[Tensor, Tensor]:
-    """Unique edges (E, 2) and how many faces use each: 2 everywhere on a closed manifold."""
-    keys, counts = torch.unique(_face_edge_keys(mesh.faces, mesh.num_vertices), return_counts=True)
-    v = mesh.num_vertices
-    return torch.stack([torch.div(keys, v, rounding_mode="floor"), keys % v], -1), counts
+# --- Geometry regularisers (DMTet stage: Laplacian smoothness, normal consistency). The SDF sign-change
+# regulariser acts on the tet grid, not on a mesh: it lives in tet_surface.py. Both read the mesh's one
+# ``topology``; neither selects with a boolean mask, which would read its size on the host every step.
 
 
 def interior_face_pairs(mesh: Mesh) -> Tensor:
@@ -94,13 +154,8 @@ def interior_face_pairs(mesh: Mesh) -> Tensor:
     Boundary edges (one face) and non-manifold edges (three or more) have no single dihedral
     angle and are left out.
     """
-    keys = _face_edge_keys(mesh.faces, mesh.num_vertices)
-    order = torch.argsort(keys, stable=True)
-    _, counts = torch.unique_consecutive(keys[order], return_counts=True)
-    starts = torch.cumsum(counts, 0) - counts
-    first = starts[counts == 2]
-    face_of = torch.div(order, 3, rounding_mode="floor")
-    return torch.stack([face_of[first], face_of[first + 1]], -1)
+    topo = mesh.topology
+    return topo.edge_faces[topo.interior]
 
 
 def surface_area(mesh: Mesh) -> Tensor:
@@ -123,7 +178,8 @@ def laplacian_smoothness(mesh: Mesh, skip_boundary: bool = False) -> Tensor:
     """
     if mesh.num_faces == 0:
         return _zero_loss(mesh)
-    edges, counts = edge_face_counts(mesh)
+    topo = mesh.topology
+    edges = topo.edge_vertices
     v = mesh.vertices
     src = torch.cat([edges[:, 0], edges[:, 1]])
     dst = torch.cat([edges[:, 1], edges[:, 0]])
@@ -133,9 +189,8 @@ def laplacian_smoothness(mesh: Mesh, skip_boundary: bool = False) -> Tensor:
     delta = v - neighbour_sum / degree.clamp_min(1.0).unsqueeze(-1)
     keep = degree > 0
     if skip_boundary:
-        on_boundary = torch.zeros_like(keep)
-        on_boundary[edges[counts == 1].reshape(-1)] = True
-        keep = keep & ~on_boundary
+        boundary = (topo.edge_counts == 1).to(v.dtype).repeat_interleave(2)
+        keep = keep & (torch.zeros_like(degree).index_add(0, edges.reshape(-1), boundary) == 0)
     # A weighted mean over the kept vertices rather than a boolean selection of them: the selection
     # would read its size on the host every step; no vertex kept gives 0 (with a graph).
     squared = torch.where(keep, (delta ** 2).sum(-1), 0.0)
@@ -148,9 +203,11 @@ def normal_consistency(mesh: Mesh) -> Tensor:
     0 for a flat (consistently wound) mesh, 2 for a fold-over. A degenerate (zero-area) face has
     a zero normal and contributes 1 with a finite gradient.
     """
-    pairs = interior_face_pairs(mesh) if mesh.num_faces else None
-    if pairs is None or pairs.shape[0] == 0:
+    if mesh.num_faces == 0:
         return _zero_loss(mesh)
+    topo = mesh.topology
     n = mesh.face_normals(normalize=True)
-    cos = (gather_rows(n, pairs[:, 0]) * gather_rows(n, pairs[:, 1])).sum(-1)
-    return (1.0 - cos).mean()
+    cos = (gather_rows(n, topo.edge_faces[:, 0]) * gather_rows(n, topo.edge_faces[:, 1].clamp(min=0))).sum(-1)
+    # A weighted mean over interior edges; none gives 0 (with a graph).
+    interior = topo.interior
+    return torch.where(interior, 1.0 - cos, 0.0).sum() / interior.sum().clamp_min(1).to(cos.dtype)

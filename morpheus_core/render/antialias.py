@@ -142,14 +142,14 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
     device = clip.device
     with torch.no_grad():
         candidate, sx, sy = compiled_for(_candidates, device)(
-            fragments.orientation, topo.faces, topo.nonmanifold, topo.vertices, clip.detach(), height, width,
+            fragments.orientation, topo.edge_faces, topo.nonmanifold, topo.edge_vertices, clip.detach(), height, width,
             config.near_w)
         view, edge = candidate.nonzero(as_tuple=True)
         ends, first_x, counts_x, first_y, counts_y = compiled_for(_walks, device)(
-            view, edge, topo.vertices, sx, sy, height, width, config.min_edge_px)
+            view, edge, topo.edge_vertices, sx, sy, height, width, config.min_edge_px)
         covered = fragments.face_id.reshape(-1) >= 0
         best = torch.full((2 * covered.shape[0],), -1, dtype=torch.int64, device=device)
-        edge_scale = 1 << max(1, topo.vertices.shape[0].bit_length())
+        edge_scale = 1 << max(1, topo.edge_vertices.shape[0].bit_length())
         # Walk x-major edges along columns (crossing vertical pixel pairs) and y-major edges along rows;
         # the row walks' pairs sit in the second half of ``best``.
         for major, first, counts in ((True, first_x, counts_x), (False, first_y, counts_y)):
@@ -159,7 +159,7 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
                     height if major else width, 0 if major else covered.shape[0], edge_scale)
                 best.scatter_reduce_(0, pair, key, reduce="amax", include_self=True)
         pair = (best >= 0).nonzero().squeeze(1)
-    t, inner, outer = compiled_for(_crossings, device)(pair, best, covered, topo.vertices, clip, height, width,
+    t, inner, outer = compiled_for(_crossings, device)(pair, best, covered, topo.edge_vertices, clip, height, width,
                                                         edge_scale)
     return SilhouetteCrossings(inner=inner, outer=outer, t=t)
 

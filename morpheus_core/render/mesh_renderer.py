@@ -105,7 +105,9 @@ def render_shaded(mesh: Mesh, cameras: Cameras, height: int, width: int, shader:
     cameras = cameras.to(device=vertices.device, dtype=vertices.dtype)
     homog = torch.cat([vertices, torch.ones_like(vertices[:, :1])], dim=-1)
     clip = torch.einsum("bij,vj->bvi", cameras.world_to_clip(aspect=width / height), homog)
-    frags = rasterize(clip, mesh.faces.to(vertices.device), height, width, config.raster)
+    # The mesh's cached topology when its faces sit with its vertices (the stages' case): no host reads.
+    faces = mesh.topology if mesh.faces.device == vertices.device else mesh.faces.to(vertices.device)
+    frags = rasterize(clip, faces, height, width, config.raster)
 
     points = interpolate_sparse(vertices, frags)
     colours = shader(frags, points)

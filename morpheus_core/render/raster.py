@@ -41,6 +41,7 @@ from torch import Tensor
 
 from morpheus_core.devices import compiled_for
 from morpheus_core.gather import gather_batched_rows, gather_rows
+from morpheus_core.geometry.mesh import MeshIndexError, MeshTopology, mesh_topology
 
 _INT64_MAX = torch.iinfo(torch.int64).max
 # Bits of the packed z-buffer key spent on depth at most; the rest (below bit 62) hold the face id.
@@ -79,40 +80,6 @@ class RasterInputError(ValueError):
     """Bad shapes, dtypes or indices handed to the rasteriser."""
 
 
-@dataclass(frozen=True)
-class EdgeTopology:
-    """Unique undirected edges of a face list: end points (E, 2), up to two adjacent faces (E, 2)
-    with -1 where absent, and a flag for edges shared by more than two faces."""
-
-    vertices: Tensor
-    faces: Tensor
-    nonmanifold: Tensor
-
-
-def edge_topology(faces: Tensor, num_vertices: int | None = None) -> EdgeTopology:
-    """Unique edges of ``faces`` (F, 3) int64 and their adjacent faces (sort of packed 1-D keys).
-    ``num_vertices`` (more than the largest index) saves reading that index from the device."""
-    num_faces = faces.shape[0]
-    device = faces.device
-    if num_faces == 0:
-        empty = torch.zeros(0, 2, dtype=torch.int64, device=device)
-        return EdgeTopology(empty, empty.clone(), torch.zeros(0, dtype=torch.bool, device=device))
-    a = faces.reshape(-1)
-    b = faces.roll(-1, 1).reshape(-1)  # corners 1, 2, 0; a list index would be a host copy (a sync)
-    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    stride = int(hi.max()) + 1 if num_vertices is None else num_vertices
-    keys = lo * stride + hi
-    owner = torch.arange(num_faces, device=device).repeat_interleave(3)
-    keys, order = torch.sort(keys, stable=True)
-    owner = owner[order]
-    unique, counts = torch.unique_consecutive(keys, return_counts=True)
-    first = torch.cumsum(counts, 0) - counts
-    second = torch.where(counts >= 2, owner[(first + 1).clamp(max=keys.numel() - 1)], -1)
-    edge_faces = torch.stack([owner[first], second], dim=1)
-    edge_vertices = torch.stack([unique // stride, unique % stride], dim=1)
-    return EdgeTopology(edge_vertices, edge_faces, counts > 2)
-
-
 @dataclass
 class Fragments:
     """What the rasteriser saw. Per covered pixel (sparse, N = number of covered pixels over all
@@ -132,6 +99,8 @@ class Fragments:
     view_depth: Tensor
     orientation: Tensor
     config: RasterConfig = field(default_factory=RasterConfig)
+    topology: MeshTopology | None = field(default=None, repr=False)
+    """The faces' edges when the caller had them (``Mesh.topology``); else built by ``edges``."""
 
     @property
     def batch(self) -> int:
@@ -154,11 +123,19 @@ class Fragments:
         return self.scatter(self.view_depth.unsqueeze(-1))[..., 0]
 
     @cached_property
-    def edges(self) -> EdgeTopology:
-        return edge_topology(self.faces, self.clip.shape[1])
+    def edges(self) -> MeshTopology:
+        """The faces' unique edges and their adjacent faces, for the silhouette anti-aliasing."""
+        if self.topology is not None:
+            return self.topology
+        try:
+            return mesh_topology(self.faces, self.clip.shape[1])
+        except MeshIndexError as err:  # unreachable after _check_inputs; kept typed
+            raise RasterInputError(str(err)) from err
 
 
-def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int) -> Tensor:
+def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int, checked: MeshTopology | None) -> Tensor:
+    """Shapes, dtypes, devices and the face index range; the range costs a host read unless ``checked``
+    (a mesh's topology, checked against the same vertex count when it was built)."""
     if clip.dim() == 2:
         clip = clip.unsqueeze(0)
     if clip.dim() != 3 or clip.shape[-1] != 4:
@@ -171,7 +148,14 @@ def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int) -> Tenso
         raise RasterInputError(f"faces must be int64, got {faces.dtype}")
     if faces.device != clip.device:
         raise RasterInputError(f"faces on {faces.device} but clip vertices on {clip.device}")
-    if faces.numel():
+    if checked is not None:
+        if checked.num_vertices != clip.shape[1]:
+            raise RasterInputError(f"the faces' topology was built for {checked.num_vertices} vertices, "
+                                   f"the clip vertices have {clip.shape[1]}")
+        if not checked.is_current():
+            raise RasterInputError("the faces were changed in place after their topology was built: "
+                                   "build a new Mesh (or call mesh_topology again)")
+    elif faces.numel():
         lowest, highest = torch.stack(torch.aminmax(faces)).tolist()  # one host read
         if lowest < 0 or highest >= clip.shape[1]:
             raise RasterInputError(f"face indices must lie in [0, {clip.shape[1]}), got [{lowest}, {highest}]")
@@ -289,11 +273,16 @@ def _pair_keys(tri: Tensor, local: Tensor, boxes: Tensor, corners: Tensor, num_f
     return pixel, torch.where(inside, key, _INT64_MAX)
 
 
-def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: RasterConfig | None = None) -> Fragments:
+def rasterize(clip: Tensor, faces: Tensor | MeshTopology, height: int, width: int,
+              config: RasterConfig | None = None) -> Fragments:
     """Rasterise triangles ``faces`` (F, 3) int64 over clip-space vertices ``clip`` (B, V, 4) or (V, 4)
-    into ``height`` × ``width`` images per view; see the module docstring for the rules."""
+    into ``height`` × ``width`` images per view; see the module docstring for the rules. ``faces`` may be
+    a mesh's ``topology``: its index check and edges are then reused, not redone (two host reads and
+    an edge sort per call, which a launch-bound stage pays every step)."""
     config = config or RasterConfig()
-    clip = _check_inputs(clip, faces, height, width)
+    topology = faces if isinstance(faces, MeshTopology) else None
+    faces = topology.faces if topology is not None else faces
+    clip = _check_inputs(clip, faces, height, width, topology)
     batch, num_faces, device = clip.shape[0], faces.shape[0], clip.device
     hw = height * width
 
@@ -317,7 +306,8 @@ def rasterize(clip: Tensor, faces: Tensor, height: int, width: int, config: Rast
     bary, view_depth = compiled_for(_perspective_barycentrics, device)(clip, faces, pixel_index, face, height, width)
     return Fragments(clip=clip, faces=faces, height=height, width=width,
                      face_id=face_flat.reshape(batch, height, width), pixel_index=pixel_index, face=face,
-                     bary=bary, view_depth=view_depth, orientation=orientation, config=config)
+                     bary=bary, view_depth=view_depth, orientation=orientation, config=config,
+                     topology=topology)
 
 
 def _perspective_barycentrics(clip: Tensor, faces: Tensor, pixel_index: Tensor, face: Tensor,

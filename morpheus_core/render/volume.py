@@ -44,6 +44,10 @@ class VolumeRenderConfig:
     """Densities are clamped below this so optical depth stays finite (inf·0 is NaN for zero-length steps)."""
     chunk_points: int = 1 << 18
     """Points per field call: bounds the field's peak memory, not the result."""
+    chunk_rays: int = 1 << 14
+    """Rays per pass of a render without gradients (previews, evaluation, the NeRF→DMTet conversion):
+    bounds its per-sample buffers, which for many views at once ran a GPU out of memory, not the
+    result. Training renders take one pass: their backward needs every sample."""
     # Why these defaults (H200): normals were 6/7 of a NeRF step's encoder work, so they are skipped
     # where they barely count; the transmittance probe cost as much as it saved (paper NeRF step 177
     # vs 161 ms at one object, equal at eight; blob-shaped field), so it is off.
@@ -72,8 +76,8 @@ class VolumeRenderConfig:
         return self.sample_buffer
 
     def __post_init__(self) -> None:
-        if self.n_samples < 1 or self.chunk_points < 1:
-            raise ValueError("n_samples and chunk_points must be ≥ 1")
+        if self.n_samples < 1 or self.chunk_points < 1 or self.chunk_rays < 1:
+            raise ValueError("n_samples, chunk_points and chunk_rays must be ≥ 1")
         if self.max_density <= 0:
             raise ValueError("max_density must be positive")
         if self.sample_buffer not in ("auto", "exact", "padded", "graphed"):
@@ -265,24 +269,37 @@ def render_volume(
     ``budget``, the field is evaluated on its padded buffers ``budget_key`` (and ``…/normals``)."""
     config = config or VolumeRenderConfig()
 
-    def query(keep: Tensor, normals: bool, key: str) -> tuple[Tensor, Tensor, Tensor | None]:
-        if budget is None:
-            return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
-        index, _ = budget.gather(key, keep)
-        return _query_at(flat, index, budget.evaluator(key, field, normals, config.chunk_points), normals, padded=True)
+    def render_rays(o: Tensor, d: Tensor, u: Tensor, bg: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        near, far, hit = ray_box(o, d, field.bbox_radius)
+        t, step, points = _samples(o, d, near, far, u)
+        keep = hit.unsqueeze(-1).expand(-1, config.n_samples)
+        if occupancy is not None:
+            keep = keep & occupancy.occupied(points)
+        flat = points.reshape(-1, 3)
+        if config.transmittance_threshold > 0 and torch.is_grad_enabled():
+            keep = _visible(field, flat, keep, step, config)
+
+        def query(keep: Tensor, normals: bool, key: str) -> tuple[Tensor, Tensor, Tensor | None]:
+            if budget is None:
+                return _query(field, flat, keep.reshape(-1), normals, config.chunk_points)
+            index, _ = budget.gather(key, keep)
+            return _query_at(flat, index, budget.evaluator(key, field, normals, config.chunk_points), normals,
+                             padded=True)
+
+        return _composite(query, keep, t, step, bg, config, budget_key)
 
     origins, dirs = cameras.rays(height, width)
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    near, far, hit = ray_box(o, d, field.bbox_radius)
-    t, step, points = _samples(o, d, near, far, _bins(o.shape[0], config.n_samples, o, config, generator))
-    keep = hit.unsqueeze(-1).expand(-1, config.n_samples)
-    if occupancy is not None:
-        keep = keep & occupancy.occupied(points)
-    flat = points.reshape(-1, 3)
-    if config.transmittance_threshold > 0 and torch.is_grad_enabled():
-        keep = _visible(field, flat, keep, step, config)
+    u = _bins(o.shape[0], config.n_samples, o, config, generator)  # all rays' jitter in one draw, chunked or not
     bg = _background(background, o, len(cameras)).repeat_interleave(height * width, 0)
-    return _images(_composite(query, keep, t, step, bg, config, budget_key), len(cameras), height, width)
+    n, chunk = o.shape[0], config.chunk_rays
+    if torch.is_grad_enabled() or budget is not None or n <= chunk:
+        values = render_rays(o, d, u, bg)
+    else:
+        parts = [render_rays(o[i:i + chunk], d[i:i + chunk], u[i:i + chunk], bg[i:i + chunk])
+                 for i in range(0, n, chunk)]
+        values = tuple(torch.cat(x) for x in zip(*parts, strict=True))
+    return _images(values, len(cameras), height, width)
 
 
 @torch.no_grad()

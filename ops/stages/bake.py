@@ -21,7 +21,6 @@ from morpheus_core.cameras import turntable
 from morpheus_core.devices import pick_device
 from morpheus_core.export.gltf import export_glb, export_obj
 from morpheus_core.export.uv_bake import BakeConfig, bake_uv
-from morpheus_core.geometry.mesh import edge_face_counts
 from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.texture import TextureField, TextureFieldConfig
@@ -100,7 +99,7 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
         "vertices": int(asset.vertices.shape[0]), "uv_coverage": round(baked.coverage, 4),
         "texture_size": bake_cfg.texture_size,
         # UV seams split the exported vertices, so closedness is judged on the mesh before unwrapping.
-        "watertight": bool((edge_face_counts(mesh)[1] == 2).all()),
+        "watertight": bool((mesh.topology.edge_counts == 2).all()),
         "ref_psnr": reference_psnr(ref, target),
         **hygiene,
         **{k: topology[k] for k in ("euler_number", "genus", "non_manifold_edges", "boundary_edges", "holes")},
