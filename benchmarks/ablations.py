@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from benchmarks.oracle import OracleConfig
 from benchmarks.scene_eval import EvalConfig, evaluate, mesh_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, schedule_store, stage_guards, stage_wall_s
 from benchmarks.scenes import Scene
@@ -51,11 +52,11 @@ ROWS: tuple[Row, ...] = (
         (0.8, "flat over the middle range"), (1.0, "null pass (= no 2D prior): far worse (lacks detail)"))),
 )
 
-METRICS = ("novel_psnr", "novel_ssim", "hf_ratio", "colour_deviation", "chamfer", "fscore", "ref_psnr")
+METRICS = ("novel_psnr", "detail_psnr", "novel_ssim", "hf_ratio", "colour_deviation", "chamfer", "fscore", "ref_psnr")
 
 
 def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Path, eval_cfg: EvalConfig,
-                  rows: tuple[Row, ...] = ROWS) -> list[dict[str, Any]]:
+                  rows: tuple[Row, ...] = ROWS, oracle: OracleConfig | None = None) -> list[dict[str, Any]]:
     """One record per (scene, row): the row's metrics against ground truth, stage-2 time and guards.
 
     Also one ``stage1`` record per scene: the DMTet stage's own texture, before any stage-2 row."""
@@ -66,7 +67,7 @@ def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Pa
     for scene in scenes:
         photo = photo_path(scene, work / "photos")
         key = scene.name
-        out = run_scene(scene, photo, store, base_cfg, schedule.label, key, until="dmtet")
+        out = run_scene(scene, photo, store, base_cfg, schedule.label, key, until="dmtet", oracle=oracle)
         if out.error:
             records.append({"scene": scene.name, "row": "stage1", "error": out.error})
             continue
@@ -75,7 +76,7 @@ def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Pa
         for row in rows:
             cfg = schedule.config(device, ("texture.follow_plan=false", *row.overrides))
             t0 = time.perf_counter()
-            out = run_scene(scene, photo, store, cfg, schedule.label, key, until="texture")
+            out = run_scene(scene, photo, store, cfg, schedule.label, key, until="texture", oracle=oracle)
             if out.error:
                 records.append({"scene": scene.name, "row": row.name, "error": out.error})
                 continue
@@ -90,29 +91,10 @@ def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Pa
     return records
 
 
-MAIN_ROWS = ("base", "full_pass_2d", "ours")
-
-
-def seed_spread(by_seed: dict[int, list[dict[str, Any]]], metric: str,
-                rows: tuple[str, ...] = MAIN_ROWS) -> dict[str, dict[str, Any]]:
-    """Per row: the mean over scenes for each pipeline seed, their mean and range (max − min); per
-    claimed margin (ours − base, ours − full pass): the same, so a margin can be set against the spread."""
-    means = {seed: mean_by_row(recs) for seed, recs in by_seed.items()}
-    out: dict[str, dict[str, Any]] = {}
-
-    def summary(values: list[float]) -> dict[str, Any]:
-        return {"per_seed": values, "mean": sum(values) / len(values), "range": max(values) - min(values)}
-
-    for row in rows:
-        values = [m[row][metric] for m in means.values() if m.get(row, {}).get(metric) is not None]
-        if values:
-            out[row] = summary(values)
-    for other in rows[:-1]:
-        values = [m["ours"][metric] - m[other][metric] for m in means.values()
-                  if m.get("ours", {}).get(metric) is not None and m.get(other, {}).get(metric) is not None]
-        if values:
-            out[f"ours − {other}"] = summary(values)
-    return out
+# The rows the findings need (``benchmarks/findings.py``); k2D = 0 and r = 1 switch the 2D term off
+# (= base), r = 0 is the full pass and k2D = 3, r = 0.6 are ours, so those rows are not run twice.
+FINDING_ROWS = ("base", "full_pass_2d", "high_pass_2d_sds", "ours", "finetuned_3d", "k2d=1", "k2d=2", "k2d=4",
+                "k2d=5", "r=0.2", "r=0.4", "r=0.8")
 
 
 def mean_by_row(records: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
@@ -126,39 +108,3 @@ def mean_by_row(records: list[dict[str, Any]]) -> dict[str, dict[str, float | No
             vals = [r[m] for r in ok if r.get(m) is not None]
             out[name][m] = sum(vals) / len(vals) if vals else None
     return out
-
-
-def verdicts(means: dict[str, dict[str, float | None]]) -> list[tuple[str, bool | None, str]]:
-    """The paper's claims checked on our numbers: (claim, holds?, the numbers)."""
-    def m(row: str, metric: str) -> float | None:
-        return means.get(row, {}).get(metric)
-
-    def beats(a: str, b: str, metric: str, higher: bool) -> tuple[bool | None, str]:
-        x, y = m(a, metric), m(b, metric)
-        if x is None or y is None:
-            return None, "missing"
-        return (x > y if higher else x < y), f"{a} {x:.4g} vs {b} {y:.4g}"
-
-    checks = []
-    for other in ("base", "full_pass_2d"):
-        for metric, higher in (("novel_psnr", True), ("colour_deviation", False)):
-            ok, text = beats("ours", other, metric, higher)
-            checks.append((f"high-pass hybrid (ours) beats {other} on {metric}", ok, text))
-    ok, text = beats("full_pass_2d", "base", "colour_deviation", True)
-    checks.append(("full-pass 2D adds colour deviation over Base", ok, text))
-    ok, text = beats("ours", "base", "hf_ratio", True)
-    checks.append(("high-pass 2D restores high-frequency energy over Base", ok, text))
-    k_psnr = [m(f"k2d={k}", "novel_psnr") for k in range(6)]
-    if all(v is not None for v in k_psnr):
-        spread = max(k_psnr[1:]) - min(k_psnr[1:])
-        gain = min(k_psnr[1:]) - k_psnr[0]
-        checks.append(("k2D: 0 worst, 1 … 5 within a narrow band", gain > 0 and spread < gain,
-                       f"k2D≥1 spread {spread:.3f} dB, gain over k2D=0 ≥ {gain:.3f} dB"))
-    r_psnr = {r: m(f"r={r:.1f}", "novel_psnr") for r in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)}
-    if all(v is not None for v in r_psnr.values()):
-        middle = [r_psnr[r] for r in (0.2, 0.4, 0.6, 0.8)]
-        ends = max(r_psnr[0.0], r_psnr[1.0])
-        checks.append(("r: the ends (0, 1) below every middle value", ends < min(middle),
-                       f"r=0 {r_psnr[0.0]:.2f}, r=1 {r_psnr[1.0]:.2f}, "
-                       f"middle {min(middle):.2f} … {max(middle):.2f} dB"))
-    return checks

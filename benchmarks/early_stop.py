@@ -19,10 +19,8 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import os
 import statistics
 import sys
-import tempfile
 import time
 import traceback
 from collections.abc import Callable
@@ -36,11 +34,10 @@ from typing import Any
 import torch
 
 from benchmarks.error_time import POINTS, run_error_time
-from benchmarks.quality import SIZES, _worker_init, _write, machine
+from benchmarks.quality import SIZES, _write, machine, worker_init
 from benchmarks.scene_eval import EvalConfig
 from benchmarks.scene_runs import Schedule, photo_path, schedule_store
 from benchmarks.scenes import SCENE_NAMES, make_scenes
-from ops.engine.gpu_lease import LEASE_DIR_ENV
 
 RESULTS = Path(__file__).parent / "results"
 OPTIMISING = ("nerf", "dmtet", "texture")
@@ -112,19 +109,12 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
             finish(cell, partial(run_error_time, *a))
         return records, failed
     threads = max(1, torch.get_num_threads() // jobs)
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_shared_gpu_worker,
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=worker_init,
                              initargs=(threads,)) as pool:
         futures = {pool.submit(run_error_time, *a): cell for cell, a in zip(cells, args, strict=True)}
         for future in as_completed(futures):
             finish(futures[future], future.result)
     return records, failed
-
-
-def _shared_gpu_worker(threads: int) -> None:
-    # The runs share the host's GPU on purpose (they are launch-bound): each worker leases from its
-    # own folder instead of waiting for the one device the pipeline's GPU lease would give out.
-    os.environ[LEASE_DIR_ENV] = tempfile.mkdtemp(prefix="early-stop-lease-")
-    _worker_init(threads)
 
 
 def _glb(rec: dict[str, Any]) -> dict[str, float]:

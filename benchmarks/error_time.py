@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from assets_store.store import Store
+from benchmarks.oracle import OracleConfig
 from benchmarks.scene_eval import EvalConfig, Reconstruction, evaluate, glb_output, mesh_output, nerf_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, runlog_curve, schedule_store, stage_wall_s
 from benchmarks.scenes import Scene
@@ -34,7 +35,7 @@ def _stage_output(store: Store, key: str, stage: str, schedule_cfg: Any, dev: to
 
 
 def run_error_time(scenes: list[Scene], schedules: list[Schedule], device: str, work: Path,
-                   eval_cfg: EvalConfig) -> list[dict[str, Any]]:
+                   eval_cfg: EvalConfig, oracle: OracleConfig | None = None) -> list[dict[str, Any]]:
     """One record per (schedule, scene): per-stage points and the stages' reference-PSNR curves."""
     dev = torch.device("cuda" if device == "cuda" else "cpu")
     records = []
@@ -43,7 +44,7 @@ def run_error_time(scenes: list[Scene], schedules: list[Schedule], device: str, 
         cfg = schedule.config(device, ("texture.follow_plan=false",))
         for scene in scenes:
             out = run_scene(scene, photo_path(scene, work / "photos"), store, cfg, schedule.label, scene.name,
-                            until="bake")
+                            until="bake", oracle=oracle)
             if out.error:
                 records.append({"schedule": schedule.label, "scene": scene.name, "error": out.error})
                 continue

@@ -4,7 +4,9 @@
 #   bash benchmarks/gpu_session.sh [quick|priors|stages|...]   results and logs -> $OUT/<mode>.tgz
 # quick: every device-aware test on CUDA, render benchmarks, prior benchmark --quick (fits one 10-min call);
 # priors: the CUDA prior tests and the full prior benchmark only.
-# quality: benchmarks/quality.py at the gpu size (QUALITY_ARGS picks parts and scenes), results -> $OUT.
+# quality: benchmarks/quality.py on CUDA (QUALITY_ARGS picks size, parts, rows and scenes; default the gpu size),
+#   results -> $OUT. The ablation records go on from benchmarks/results/quality_ablations_<tag>.records.jsonl
+#   (QUALITY_RECORDS names it), so a call cut short by its time limit keeps what it finished.
 # speed: the paper-schedule benchmark (benchmarks/paper_speed.py); SPEED_RUNS lists "mode:batches" runs,
 #   e.g. "before:1 after:1,4"; carry outputs/gpu_refs (prepared on the CPU machine:
 #   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
@@ -153,9 +155,11 @@ if [ "$mode" = speed ]; then
   done
   exit 0
 fi
-if [ "$mode" = quality ]; then  # QUALITY_ARGS, e.g. "--parts error_time --scenes mug"
-  timeout ${QUALITY_TIMEOUT:-560} python -m benchmarks.quality --size gpu --device cuda --results "$out" \
-    ${QUALITY_ARGS:-} > "$out/quality.log" 2>&1
+if [ "$mode" = quality ]; then  # QUALITY_ARGS, e.g. "--size cpu --scenes all --rows findings --jobs 12"
+  [ -n "${QUALITY_RECORDS:-}" ] && [ -f "benchmarks/results/$QUALITY_RECORDS" ] && cp "benchmarks/results/$QUALITY_RECORDS" "$out/"
+  [ -f benchmarks/results/findings.json ] && cp benchmarks/results/findings.json "$out/"
+  timeout ${QUALITY_TIMEOUT:-560} python -m benchmarks.quality --device cuda --results "$out" \
+    ${QUALITY_ARGS:---size gpu} > "$out/quality.log" 2>&1
   echo "quality exit $?" >> "$out/quality.log"
   exit 0
 fi

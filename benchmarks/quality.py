@@ -1,13 +1,16 @@
 """The quality benchmark: synthetic scenes with ground truth, oracle priors, the paper's ablations,
 error against run time and the stability sweep. ``make bench-quality`` runs the CPU size.
 
-    python -m benchmarks.quality                         # CPU size: every part, results in benchmarks/results
-    python -m benchmarks.quality --size large            # more steps and views (hours on a CPU)
+    python -m benchmarks.quality                         # CPU size, default rows and scenes (< 30 min, 2 cores)
+    python -m benchmarks.quality --scenes all --rows findings --jobs 8   # every finding, every scene
+    python -m benchmarks.quality --oracle noise-free     # the deterministic oracle (regressions, comparisons)
     python -m benchmarks.quality --size gpu --device cuda --parts error_time
 
 Each part writes ``<part>_<size>.json`` (every record, the machine, the date, the command) and a
-Markdown table beside it; error against time also a plot. Work files (photos, stores) go to
-``--work`` and are reused: an interrupted run picks up the finished stages.
+Markdown table beside it; error against time also a plot. The ablations also judge the paper's
+findings (``benchmarks/findings.py``) into ``findings.json`` / ``findings.md``, one list over sizes.
+Work files (photos, stores) go to ``--work``, one folder per size and oracle, and are reused: an
+interrupted run picks up the finished stages.
 """
 
 from __future__ import annotations
@@ -16,11 +19,13 @@ import argparse
 import json
 import logging
 import multiprocessing
+import os
 import platform
 import sys
+import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -29,21 +34,22 @@ from typing import Any
 import torch
 
 from assets_store.atomic import atomic_write_text
-from benchmarks.ablations import MAIN_ROWS, ROWS, run_ablations
+from benchmarks.ablations import FINDING_ROWS, ROWS, run_ablations
 from benchmarks.error_time import run_error_time
-from benchmarks.oracle import OracleConfig
+from benchmarks.findings import findings_markdown, judge_all, merge_findings
+from benchmarks.oracle import ORACLE_KINDS, OracleConfig
 from benchmarks.quality_report import (
     ablation_markdown,
     error_time_markdown,
     per_scene_markdown,
     plot_error_time,
-    seed_spread_markdown,
     stability_markdown,
 )
 from benchmarks.scene_eval import EvalConfig
-from benchmarks.scene_runs import Schedule
+from benchmarks.scene_runs import Schedule, photo_path
 from benchmarks.scenes import SCENE_NAMES, make_scenes
 from benchmarks.stability import run_stability
+from ops.engine.gpu_lease import LEASE_DIR_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 PARTS = ("ablations", "error_time", "stability")
@@ -57,6 +63,7 @@ _BENCH_CPU = Schedule("bench-cpu", "draft", overrides=("texture.loop.steps=150",
 @dataclass(frozen=True)
 class BenchSize:
     scenes: tuple[str, ...]
+    rows: tuple[str, ...]  # the ablation rows run by default (every seed runs every row)
     ablation: Schedule
     timing: tuple[Schedule, ...]
     timing_scenes: tuple[str, ...]
@@ -65,16 +72,21 @@ class BenchSize:
     eval: EvalConfig = field(default_factory=EvalConfig)
 
 
+# The CPU default fits 30 minutes on 2 cores: the first three findings' rows on three scenes, one
+# with coarse print and two with fine detail; ``--scenes all --rows findings`` runs every finding.
+_CPU_ROWS = ("base", "full_pass_2d", "high_pass_2d_sds", "ours")
+_CPU_SCENES = ("mug", "box", "bottle")
+
 SIZES: dict[str, BenchSize] = {
     "cpu": BenchSize(
-        scenes=SCENE_NAMES, ablation=_BENCH_CPU,
+        scenes=_CPU_SCENES, rows=_CPU_ROWS, ablation=_BENCH_CPU,
         # standard-size NeRF steps cost ~10 s on 2 cores (hash grid 2^19, normals): GPU sizes only
         timing=(Schedule("draft", "draft"), _BENCH_CPU),
         timing_scenes=SCENE_NAMES,  # the GLB bars are means over all eight
         stability=Schedule("stability-cpu", "draft", steps=(60, 30, 30)), stability_scene="mug",
     ),
     "large": BenchSize(
-        scenes=SCENE_NAMES,
+        scenes=SCENE_NAMES, rows=FINDING_ROWS,
         ablation=Schedule("bench-large", "standard", steps=(600, 300, 600)),
         timing=(Schedule("draft", "draft"), Schedule("standard/5", "standard", steps=(600, 300, 300)),
                 Schedule("paper/20", "paper", steps=(500, 250, 250))),
@@ -83,7 +95,7 @@ SIZES: dict[str, BenchSize] = {
         eval=EvalConfig(azimuths=16, resolution=256),
     ),
     "gpu": BenchSize(
-        scenes=SCENE_NAMES,
+        scenes=SCENE_NAMES, rows=FINDING_ROWS,
         ablation=Schedule("bench-gpu", "standard", steps=(1000, 500, 1000)),
         timing=(Schedule("draft", "draft"), Schedule("standard/5", "standard", steps=(600, 300, 300)),
                 Schedule("paper/20", "paper", steps=(500, 250, 250))),
@@ -108,7 +120,11 @@ def _write(results: Path, stem: str, payload: dict[str, Any], markdown: str) -> 
     atomic_write_text(results / f"{stem}.md", f"# {payload['title']}\n\n{head}{payload['about']}\n\n{markdown}")
 
 
-def _worker_init(threads: int) -> None:
+def worker_init(threads: int) -> None:
+    """A benchmark worker process: its share of the CPU threads, quiet logs, and its own GPU lease folder:
+    the runs share the host's GPU on purpose (they are launch-bound), instead of queueing for the one
+    device the pipeline's lease would hand out."""
+    os.environ[LEASE_DIR_ENV] = tempfile.mkdtemp(prefix="bench-lease-")
     torch.set_num_threads(threads)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     logging.getLogger("morpheus3d.bench").setLevel(logging.INFO)
@@ -116,17 +132,41 @@ def _worker_init(threads: int) -> None:
         logging.getLogger(noisy).setLevel(logging.ERROR)
 
 
-def run_calls(calls: list[tuple[Callable[..., list[dict[str, Any]]], tuple[Any, ...]]],
-              jobs: int) -> list[list[dict[str, Any]]]:
+Call = tuple[Callable[..., list[dict[str, Any]]], tuple[Any, ...]]
+
+
+def run_calls(calls: list[Call], jobs: int,
+              on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[list[dict[str, Any]]]:
     """Each ``fn(*args)`` of ``calls``, in ``jobs`` processes at once when > 1 (scenes are independent:
-    each has its own keys in the store, so results do not depend on it); results in call order."""
+    each has its own keys in the store, so results do not depend on it); results in call order.
+    ``on_result(i, result)`` runs as each call finishes (to save it before the others end)."""
+    done = on_result or (lambda _i, _r: None)
     if jobs <= 1 or len(calls) <= 1:
-        return [fn(*a) for fn, a in calls]
+        results = []
+        for i, (fn, a) in enumerate(calls):
+            results.append(fn(*a))
+            done(i, results[-1])
+        return results
     threads = max(1, torch.get_num_threads() // jobs)
     with ProcessPoolExecutor(min(jobs, len(calls)), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_worker_init, initargs=(threads,)) as pool:
-        futures = [pool.submit(fn, *a) for fn, a in calls]
-        return [f.result() for f in futures]
+                             initializer=worker_init, initargs=(threads,)) as pool:
+        futures = {pool.submit(fn, *a): i for i, (fn, a) in enumerate(calls)}
+        out: dict[int, list[dict[str, Any]]] = {}
+        for future in as_completed(futures):
+            out[futures[future]] = future.result()
+            done(futures[future], out[futures[future]])
+        return [out[i] for i in range(len(calls))]
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of a JSON-lines log; a line cut short by a kill is skipped (its call runs again)."""
+    records = []
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            log.warning("%s: skipping a line cut short (%d characters)", path, len(line))
+    return records
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,7 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", choices=sorted(SIZES), default="cpu")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
     ap.add_argument("--scenes", default="", help="comma-separated scene names for the ablations and error against "
-                                                 "time (default: the size's)")
+                                                 "time, or 'all' (default: the size's)")
+    ap.add_argument("--oracle", choices=ORACLE_KINDS, default="stochastic",
+                    help="the priors' oracle: stochastic (errs like a real denoiser, the default) or noise-free")
     ap.add_argument("--schedules", default="", help="comma-separated labels of the size's timing schedules to run "
                                                     "(default: all)")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -144,14 +186,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a config override for every schedule of the run (one configuration for all scenes)")
     ap.add_argument("--tag", default="", help="suffix of the result files (e.g. for a --set variant)")
-    ap.add_argument("--rows", default="", help="comma-separated ablation rows (default: every row)")
-    ap.add_argument("--seed-scenes", default="", help="comma-separated scenes for the extra ablation seeds "
-                                                      "(default: the ablation's scenes)")
+    ap.add_argument("--rows", default="", help="comma-separated ablation rows, 'findings' (the rows the findings "
+                                               "need) or 'all' (default: the size's)")
     ap.add_argument("--jobs", type=int, default=1, help="scenes run in this many processes at once (the CPU threads "
                                                         "are shared out between them); results are the same")
     ap.add_argument("--ablation-seeds", default="0,1,2",
-                    help="pipeline seeds for the main ablation rows (base, full pass, ours): the first runs every row, "
-                         "the others those three, for the spread over seeds")
+                    help="pipeline seeds: every seed runs every row, for the spread the findings are judged against")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     for noisy in ("morpheus3d", "morpheus3d.pipeline"):
@@ -169,43 +209,80 @@ def main(argv: list[str] | None = None) -> int:
             return replace(s, overrides=(*s.overrides, *args.set))
         size = replace(size, ablation=extend(size.ablation), timing=tuple(extend(s) for s in size.timing),
                        stability=extend(size.stability))
-    chosen = tuple(s for s in args.scenes.split(",") if s)
+    chosen = SCENE_NAMES if args.scenes == "all" else tuple(s for s in args.scenes.split(",") if s)
     names, timing_names = chosen or size.scenes, chosen or size.timing_scenes
     scenes = {s.name: s for s in make_scenes(args.seed, tuple(dict.fromkeys(
         (*names, *timing_names, size.stability_scene))))}
     tag = args.size if args.device == "cpu" or args.size == "gpu" else f"{args.size}_{args.device}"
     tag += f"_{args.tag}" if args.tag else ""
+    oracle = OracleConfig.named(args.oracle)
+    tag += "_noise-free" if oracle.kind == "noise-free" else ""
     common = {"machine": machine(args.device), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
               "command": "python -m benchmarks.quality " + " ".join(argv if argv is not None else sys.argv[1:]),
               "size": args.size, "device": args.device, "seed": args.seed, "eval": asdict(size.eval),
-              "oracle": OracleConfig().describe(), "overrides": list(args.set)}
+              "oracle": oracle.describe(), "oracle_kind": oracle.kind,
+              "overrides": list(args.set)}
     work = args.work / tag
     if "ablations" in parts:
         t0 = time.perf_counter()
         seeds = [int(s) for s in args.ablation_seeds.split(",") if s]
-        chosen_rows = tuple(r for r in ROWS if not args.rows or r.name in args.rows.split(","))
-        seed_names = [n for n in args.seed_scenes.split(",") if n] or list(names)
-        calls, called = [], {}
-        for i, seed in enumerate(seeds):
+        wanted_rows = {"": size.rows, "findings": FINDING_ROWS, "all": tuple(r.name for r in ROWS)}.get(
+            args.rows, tuple(n for n in args.rows.split(",") if n))
+        unknown = sorted(set(wanted_rows) - {r.name for r in ROWS})
+        if unknown:
+            ap.error(f"unknown row(s) {unknown}; choose from {[r.name for r in ROWS]}, 'findings' or 'all'")
+        rows = tuple(r for r in ROWS if r.name in wanted_rows)
+        # Each (seed, scene) call's records are appended to a JSON-lines log as it finishes: a run cut
+        # short keeps them, and the next run with the same results folder goes on from there.
+        log_path = args.results / f"quality_ablations_{tag}.records.jsonl"
+        row_names = {r.name for r in rows}
+        kept = [r for r in _read_jsonl(log_path) if r["seed"] in seeds and r["scene"] in names]
+        have: dict[tuple[int, str], set[str]] = {}
+        for r in kept:
+            have.setdefault((r["seed"], r["scene"]), set()).add(r["row"])
+        for scene in scenes.values():  # written once here: parallel calls of one scene would race on its photo
+            photo_path(scene, work / "photos")
+        calls, keys = [], []
+        for seed in seeds:
             schedule = size.ablation if seed == 0 else replace(
                 size.ablation, label=f"{size.ablation.label}-seed{seed}",
                 overrides=(*size.ablation.overrides, f"seed={seed}"))
-            rows = chosen_rows if i == 0 else tuple(r for r in chosen_rows if r.name in MAIN_ROWS)
-            called[seed] = list(names) if i == 0 else seed_names
-            calls += [(run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, rows))
-                      for n in called[seed]]
-        results = iter(run_calls(calls, args.jobs))
-        by_seed = {seed: [r for _ in called[seed] for r in next(results)] for seed in seeds}
+            for n in names:
+                missing = tuple(r for r in rows if r.name not in have.get((seed, n), set()))
+                if missing:
+                    calls.append((run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, missing,
+                                                  oracle)))
+                    keys.append((seed, n))
+        args.results.mkdir(parents=True, exist_ok=True)
+
+        def save(i: int, result: list[dict[str, Any]]) -> None:
+            seed, _ = keys[i]
+            fresh = [{**r, "seed": seed, "machine": common["machine"], "date": common["date"]}
+                     for r in result if "error" not in r]
+            kept.extend(fresh)
+            with log_path.open("a", encoding="utf-8") as fh:
+                fh.writelines(json.dumps(r, default=str) + "\n" for r in fresh)
+            failed = [r for r in result if "error" in r]
+            if failed:
+                log.warning("failed (retried next run): %s", "; ".join(f"{r['scene']}/{r['row']}: {r['error']}"
+                                                                       for r in failed))
+
+        run_calls(calls, args.jobs, save)
+        latest = {(r["seed"], r["scene"], r["row"]): r for r in kept}  # a resumed call re-scores stage 1
+        by_seed = {seed: [r for (s_, _, row), r in latest.items() if s_ == seed and row in row_names | {"stage1"}]
+                   for seed in seeds}
         records = by_seed[seeds[0]]
+        judged = judge_all(by_seed, f"{size.ablation.label} ({oracle.kind} oracle)")
+        merged = merge_findings(args.results / "findings.json", judged)
+        atomic_write_text(args.results / "findings.md", _FINDINGS_HEAD + findings_markdown(merged))
         _write(args.results, f"quality_ablations_{tag}", {
             **common, "title": "Ablations on synthetic scenes with oracle priors", "wall_s": time.perf_counter() - t0,
             "schedule": asdict(size.ablation), "scenes": list(names), "records": records,
-            "seed_records": {str(k): v for k, v in by_seed.items()},
+            "seed_records": {str(k): v for k, v in by_seed.items()}, "findings": judged,
             "about": _ABOUT_ABLATIONS.format(schedule=size.ablation, scenes=", ".join(names),
                                              oracle=common["oracle"], eval=size.eval)},
-            ablation_markdown(records) + f"\n### Spread over pipeline seeds (scenes: {', '.join(seed_names)})\n\n"
-            + seed_spread_markdown({k: [r for r in v if r["scene"] in seed_names] for k, v in by_seed.items()})
-            + "\n### Per scene\n\n" + per_scene_markdown(records))
+            ablation_markdown(records) + f"\n### The paper's findings (seeds {', '.join(map(str, seeds))})\n\n"
+            + findings_markdown(judged) + "\n### Per scene\n\n" + per_scene_markdown(records))
     if "error_time" in parts:
         t0 = time.perf_counter()
         timing_scenes = [scenes[n] for n in timing_names]
@@ -213,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         timing = [s for s in size.timing if not wanted or s.label in wanted]
         if not timing:
             ap.error(f"--schedules {args.schedules!r} matches none of {[s.label for s in size.timing]}")
-        calls = [(run_error_time, ([scene], [schedule], args.device, work, size.eval))
+        calls = [(run_error_time, ([scene], [schedule], args.device, work, size.eval, oracle))
                  for schedule in timing for scene in timing_scenes]
         records = [r for part in run_calls(calls, args.jobs) for r in part]
         plot = plot_error_time(records, args.results / f"error_vs_time_{tag}.png",
@@ -225,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
             error_time_markdown(records))
     if "stability" in parts:
         t0 = time.perf_counter()
-        records = run_stability(scenes[size.stability_scene], size.stability, args.device, work, size.eval)
+        records = run_stability(scenes[size.stability_scene], size.stability, args.device, work, size.eval,
+                                oracle=oracle)
         bad = [r["entry"] for r in records if not (r["finished"] and r.get("finite_outputs"))]
         _write(args.results, f"stability_{tag}", {
             **common, "title": "Stability on stiff and extreme settings", "wall_s": time.perf_counter() - t0,
@@ -248,10 +326,23 @@ views' high-frequency energy share (≥ {eval.hf_cutoff} Nyquist, inside the obj
 objects (0 = same colours), Chamfer distance and F-score (τ = {eval.fscore_threshold}) between the
 visible surfaces (points from depth maps; objects span ≈ 1.46 units). Tables show means over scenes.
 
-Two rows are identical by construction with the oracle: for a render-target prior the ideal VSD
-counterpart is the current render, so VSD's residual equals SDS's (`CurrentRenderCounterpart`):
-`high_pass_2d_sds` = `ours` and `finetuned_3d` = `ours` up to floating-point order. The paper's gaps
-there come from the real priors' stochastic, over-saturated scores, which an oracle does not have.
+With the noise-free oracle two rows are identical by construction (the ideal VSD counterpart of a
+render-target prior is the current render, so VSD's residual equals SDS's); the stochastic oracle's
+VSD counterpart repeats part of the frozen prior's error, so they differ (README, "The stochastic
+oracle"). Every seed runs every row; the findings table judges each claim against the seed spread.
+"""
+
+_FINDINGS_HEAD = """\
+# The paper's findings on the synthetic-scene benchmark
+
+Written by `python -m benchmarks.quality` (`benchmarks/findings.py`): each row compares two ablation
+rows on the same scenes and pipeline seeds. a, b: means over scenes and seeds; Δ: the mean paired
+difference b − a (for a flatness claim: the sweep's range of means); spread: the larger of the rows'
+ranges over the seeds. `reproduced`: the claimed direction by more than the spread, every seed
+agreeing (flatness: range within the spread); `refuted`: the other way by more than the spread
+(flatness: over twice the spread); otherwise `inconclusive`. Sizes and their machines, dates and
+commands: `quality_ablations_<size>.md`.
+
 """
 
 _ABOUT_TIME = """\

@@ -7,10 +7,11 @@ from pathlib import Path
 from typing import Any
 
 from assets_store.atomic import atomic_write
-from benchmarks.ablations import ROWS, mean_by_row, seed_spread, verdicts
+from benchmarks.ablations import ROWS, mean_by_row
 from benchmarks.error_time import POINTS
 
-_COLUMNS = (("novel_psnr", "novel PSNR (dB) ↑", 2), ("novel_ssim", "SSIM ↑", 4), ("hf_ratio", "HF ratio (→1)", 3),
+_COLUMNS = (("novel_psnr", "novel PSNR (dB) ↑", 2), ("detail_psnr", "detail PSNR (dB) ↑", 2),
+            ("novel_ssim", "SSIM ↑", 4), ("hf_ratio", "HF ratio (→1)", 3),
             ("colour_deviation", "colour dev. ↓", 4), ("chamfer", "Chamfer ↓", 4), ("fscore", "F-score ↑", 3),
             ("ref_psnr", "ref. PSNR (dB)", 2))
 
@@ -40,36 +41,9 @@ def ablation_markdown(records: list[dict[str, Any]]) -> str:
             cells = " | ".join(_fmt(m.get(key), d) for key, _, d in _COLUMNS)
             lines.append(f"| {name} | {cells} | {int(m['scenes'] or 0)} | {paper} |")
         lines.append("")
-    lines += ["### The paper's claims on our numbers", "", "| claim | holds | numbers (mean over scenes) |",
-              "|---|---|---|"]
-    for claim, ok, text in verdicts(means):
-        lines.append(f"| {claim} | {'yes' if ok else 'no' if ok is not None else '—'} | {text} |")
     failed = [r for r in records if "error" in r]
     if failed:
         lines += ["", "Failed runs: " + "; ".join(f"{r['scene']}/{r['row']}: {r['error']}" for r in failed)]
-    return "\n".join(lines) + "\n"
-
-
-def seed_spread_markdown(by_seed: dict[int, list[dict[str, Any]]]) -> str:
-    """The main rows and the claimed margins per pipeline seed, with their range over the seeds."""
-    seeds = list(by_seed)
-    lines = [f"Pipeline seeds {', '.join(map(str, seeds))} (`--set seed=N`: every stage's draws), means over the "
-             "scenes. A margin counts when all its seeds agree in sign and its mean exceeds the rows' spread.", ""]
-    for metric, label, digits in (("novel_psnr", "novel PSNR (dB)", 2), ("colour_deviation", "colour dev.", 4)):
-        spread = seed_spread(by_seed, metric)
-        lines += [f"| {label} | " + " | ".join(f"seed {s}" for s in seeds) + " | mean | range |",
-                  "|---|" + "---:|" * (len(seeds) + 2)]
-        for name, v in spread.items():
-            cells = " | ".join(_fmt(x, digits) for x in v["per_seed"])
-            lines.append(f"| {name} | {cells} | {_fmt(v['mean'], digits)} | {_fmt(v['range'], digits)} |")
-        rows_range = max((v["range"] for k, v in spread.items() if "−" not in k), default=0.0)
-        for name, v in spread.items():
-            if "−" in name:
-                better = (lambda x: x > 0) if metric == "novel_psnr" else (lambda x: x < 0)
-                real = all(better(x) for x in v["per_seed"]) and abs(v["mean"]) > rows_range
-                lines += ["", f"{name}: {'a real margin' if real else 'within the seed spread'} "
-                          f"({_fmt(v['mean'], digits)} against a row spread of {_fmt(rows_range, digits)})"]
-        lines.append("")
     return "\n".join(lines) + "\n"
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from benchmarks.oracle import OracleConfig
 from benchmarks.scene_eval import EvalConfig, evaluate, glb_output
 from benchmarks.scene_runs import Schedule, photo_path, run_scene, schedule_store, stage_guards
 from benchmarks.scenes import FRAME_FILL, Scene
@@ -83,7 +84,7 @@ def _finite_glb(path: Path) -> bool:
 
 
 def run_stability(scene: Scene, schedule: Schedule, device: str, work: Path, eval_cfg: EvalConfig,
-                  entries: tuple[Entry, ...] = ENTRIES) -> list[dict[str, Any]]:
+                  entries: tuple[Entry, ...] = ENTRIES, oracle: OracleConfig | None = None) -> list[dict[str, Any]]:
     store = schedule_store(work, schedule)
     dev = torch.device("cuda" if device == "cuda" else "cpu")
     records = []
@@ -96,7 +97,7 @@ def run_stability(scene: Scene, schedule: Schedule, device: str, work: Path, eva
             rec["overrides"] = list(entry.settings(base))
             cfg = schedule.config(device, ("texture.follow_plan=false", *rec["overrides"]))
             out = run_scene(scene, photo_path(scene, work / "photos", entry.fill), store, cfg, schedule.label, key,
-                            until="bake")
+                            until="bake", oracle=oracle)
             rec["finished"] = out.error is None
             rec["error"] = out.error
         except Exception as exc:

@@ -37,11 +37,23 @@ def rgb_to_lab(rgb: Tensor) -> Tensor:
     return torch.stack([116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)], dim=-3)
 
 
-def rotate_hue(rgb: Tensor, degrees: float) -> Tensor:
-    """Rotate chroma by ``degrees`` in YIQ (luma kept), a linear and smooth hue shift."""
-    a = math.radians(degrees)
-    rot = torch.tensor(
-        [[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]], dtype=torch.float64
-    )
-    mat = torch.linalg.inv(_RGB_TO_YIQ) @ rot @ _RGB_TO_YIQ
-    return _mix(rgb, mat)
+def rotate_hue(rgb: Tensor, degrees: float | Tensor) -> Tensor:
+    """Rotate chroma by ``degrees`` in YIQ (luma kept), a linear and smooth hue shift.
+
+    ``degrees`` is one angle, or a tensor of one angle per image of a B×3×H×W batch (no host read)."""
+    if not isinstance(degrees, Tensor):
+        a = math.radians(degrees)
+        rot = torch.tensor(
+            [[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]], dtype=torch.float64
+        )
+        mat = torch.linalg.inv(_RGB_TO_YIQ) @ rot @ _RGB_TO_YIQ
+        return _mix(rgb, mat)
+    if rgb.dim() != 4 or degrees.shape != rgb.shape[:1]:
+        raise ValueError(f"per-image angles {tuple(degrees.shape)} need a B×3×H×W batch, got {tuple(rgb.shape)}")
+    a = torch.deg2rad(degrees.to(torch.float64))
+    cos, sin, one, zero = a.cos(), a.sin(), torch.ones_like(a), torch.zeros_like(a)
+    rot = torch.stack([torch.stack([one, zero, zero], -1), torch.stack([zero, cos, -sin], -1),
+                       torch.stack([zero, sin, cos], -1)], -2)  # B×3×3
+    yiq = _RGB_TO_YIQ.to(a.device)
+    mat = torch.linalg.inv(yiq) @ rot @ yiq
+    return torch.einsum("bij,bjhw->bihw", mat.to(rgb), rgb)

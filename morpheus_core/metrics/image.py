@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from morpheus_core.color import rgb_to_lab
-from morpheus_core.frequency import high_frequency_ratio
+from morpheus_core.frequency import BandMask, filter_residual, high_frequency_ratio
 
 
 class MetricInputError(ValueError):
@@ -47,6 +47,15 @@ def psnr(x: Tensor, y: Tensor, max_value: float = 1.0) -> float:
     if mse == 0.0:
         return math.inf
     return 10.0 * math.log10(max_value**2 / mse)
+
+
+def detail_psnr(x: Tensor, y: Tensor, r: float = 0.6) -> float:
+    """PSNR of the high band only (DCT indices ≥ r·D per axis, the band the paper's 2D prior adds): how
+    well fine detail (print, stripes, weave) is reproduced, whatever the colours and shapes below it."""
+    if x.shape != y.shape:
+        raise ValueError(f"detail PSNR inputs differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
+    band = BandMask.high_pass(r)
+    return psnr(filter_residual(x.double(), band), filter_residual(y.double(), band))
 
 
 def mean_colour_error(x: Tensor, y: Tensor) -> float:

@@ -28,6 +28,7 @@ from morpheus_core.cuda_graphs import release_graphs
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.guidance import PriorBinding
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras
+from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 from morpheus_core.priors.proxy.prior import Corruption, CurrentRenderCounterpart, ProxyPrior
 from morpheus_core.priors.proxy.shape import InflatedProxy, InflationConfig
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
@@ -124,29 +125,33 @@ class PriorSuite(ABC):
 
 class ProxySuite(PriorSuite):
     """Render-target priors: each role is pulled towards ``target_images(cameras, h, w)`` (B×3×H×W),
-    through that role's corruption if it has one. The weight-free default targets the photo's inflated
-    silhouette; the quality benchmark's oracle targets a known object, low-passed for ``3d`` and
-    colour-shifted in its low band for ``2d`` (DESIGN.md §3)."""
+    through that role's corruption if it has one, and erring like a real denoiser where the role has
+    an error model. The weight-free default targets the photo's inflated silhouette (noise-free); the
+    quality benchmark's oracle targets a known object, low-passed for ``3d`` and colour-shifted in its
+    low band for ``2d`` (DESIGN.md §3), by default with ``DenoiserError``s (``benchmarks/oracle.py``)."""
 
     weight_free = True
 
     def __init__(self, target_images: Callable[[Cameras, int, int], Tensor], roles: tuple[str, ...],
                  vsd_roles: tuple[str, ...], description: str,
-                 corruptions: Mapping[str, Corruption] | None = None) -> None:
+                 corruptions: Mapping[str, Corruption] | None = None,
+                 errors: Mapping[str, DenoiserError] | None = None) -> None:
         self.target_images = target_images
         self.roles = roles
         self.vsd_roles = vsd_roles
         self.description = description
         schedule = NoiseSchedule()
-        corruptions = corruptions or {}
-        self.priors = {role: ProxyPrior(lambda c: c.target, schedule, corruptions.get(role)) for role in roles}
-        self.counterpart = CurrentRenderCounterpart(lambda c: c.current, schedule)
+        corruptions, errors = corruptions or {}, errors or {}
+        self.priors = {role: ProxyPrior(lambda c: c.target, schedule, corruptions.get(role), errors.get(role),
+                                        lambda c: c.current) for role in roles}
+        self.counterparts = {role: CurrentRenderCounterpart(lambda c: c.current, schedule, errors.get(role))
+                             for role in roles}
 
     def bindings(self, cameras: Cameras, renders: Tensor) -> dict[str, PriorBinding]:
         h, w = renders.shape[-2:]
         target = self.target_images(cameras, h, w).to(device=renders.device, dtype=renders.dtype)
         cond = ProxyCondition(target, renders.detach())
-        return {role: PriorBinding(self.priors[role], self.counterpart if role in self.vsd_roles else None, cond)
+        return {role: PriorBinding(self.priors[role], self.counterparts[role] if role in self.vsd_roles else None, cond)
                 for role in self.roles}
 
 

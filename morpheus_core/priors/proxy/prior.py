@@ -4,7 +4,9 @@ It is the exact noise prediction of a denoiser that believes the clean image is 
 so its SDS residual is (α_t/σ_t)(x0 − x_target): a known, noise-free pull towards the target.
 Two corruptions model the priors of the paper: ``LowPass`` (a "3D prior" that lacks high
 frequencies) and ``ColourDeviation`` (a "2D prior" whose low band is tinted and hue-shifted).
-This prior has no unconditional branch (ε_u = ε_c), so CFG leaves its prediction unchanged.
+Without an ``error`` model the prior has no unconditional branch (ε_u = ε_c), so CFG leaves its
+prediction unchanged; with one (``DenoiserError``) x̂0 errs like a real denoiser's, differently for
+every noise draw, and CFG extrapolates from an unconditional branch.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from morpheus_core.color import rotate_hue
 from morpheus_core.diffusion import NoiseSchedule
 from morpheus_core.frequency import BandMask, filter_residual
 from morpheus_core.priors.base import PixelSpacePrior
+from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 
 TargetFn = Callable[[Any], Tensor]
 
@@ -63,14 +66,21 @@ class ProxyPrior(PixelSpacePrior):
 
     ``target_fn`` returns the clean target for the condition (a camera, or anything the caller
     uses to render the known object), shaped like the noisy input or broadcastable to it.
+    ``error`` (with ``current_fn``, the renders that were noised) makes x̂0 err like a real
+    denoiser's: the step's noise ε = (x_t − α_t·x0)/σ_t is recovered from the renders and drives it.
     """
 
     def __init__(
-        self, target_fn: TargetFn, schedule: NoiseSchedule, corruption: Corruption | None = None
+        self, target_fn: TargetFn, schedule: NoiseSchedule, corruption: Corruption | None = None,
+        error: DenoiserError | None = None, current_fn: TargetFn | None = None,
     ) -> None:
+        if error is not None and current_fn is None:
+            raise ValueError("a denoiser error model needs current_fn (the renders that were noised)")
         self.target_fn = target_fn
         self.schedule = schedule
         self.corruption = corruption
+        self.error = error
+        self.current_fn = current_fn
 
     def target(self, condition: Any) -> Tensor:
         target = self.target_fn(condition)
@@ -80,9 +90,18 @@ class ProxyPrior(PixelSpacePrior):
         if not math.isfinite(cfg_scale):
             raise ValueError(f"cfg_scale must be finite, got {cfg_scale}")
         ab = self.schedule.alpha_bar(t, like=noisy)
-        target = self.target(condition).to(device=noisy.device, dtype=ab.dtype)
+        x_t = noisy.to(ab.dtype)
+        x0 = self.target(condition).to(device=noisy.device, dtype=ab.dtype)
         sigma = (1.0 - ab).sqrt().clamp(min=_MIN_SIGMA)
-        return ((noisy.to(ab.dtype) - ab.sqrt() * target) / sigma).to(noisy.dtype)
+        if self.error is not None:
+            x0 = self.error.predictions(x0.expand_as(x_t), _step_noise(x_t, ab, sigma, self.current_fn(condition)),
+                                        ab, cfg_scale)
+        return ((x_t - ab.sqrt() * x0) / sigma).to(noisy.dtype)
+
+
+def _step_noise(x_t: Tensor, ab: Tensor, sigma: Tensor, renders: Tensor) -> Tensor:
+    """ε of x_t = α_t·x0 + σ_t·ε, with x0 the renders that were noised."""
+    return (x_t - ab.sqrt() * renders.to(device=x_t.device, dtype=x_t.dtype)) / sigma
 
 
 def constant_target(image: Tensor) -> TargetFn:
@@ -97,12 +116,24 @@ class CurrentRenderCounterpart(PixelSpacePrior):
     VSD fine-tunes ε_φ to model the distribution of the current renders; for a deterministic
     render that model's ideal is exactly this expression, with nothing left to learn. So with a
     noise-free proxy target, VSD's residual α_t/σ_t·(x0 − x_target) equals SDS's: the proxy runs
-    every VSD configuration correctly, and only real priors show the two apart.
+    every VSD configuration correctly, and only real priors show the two apart. With the frozen
+    prior's ``error`` model, x̂ also carries the share of its noise-driven error that a LoRA copy of
+    the same network repeats (``DenoiserError.counterpart_shared``): VSD's control variate.
     ``current_fn(condition)`` returns the (detached) renders of this step.
     """
 
-    def __init__(self, current_fn: TargetFn, schedule: NoiseSchedule) -> None:
-        self._as_target = ProxyPrior(current_fn, schedule)
+    def __init__(self, current_fn: TargetFn, schedule: NoiseSchedule, error: DenoiserError | None = None) -> None:
+        self.current_fn = current_fn
+        self.schedule = schedule
+        self.error = error
 
     def predict_noise(self, noisy: Tensor, t: Tensor, condition: Any, cfg_scale: float) -> Tensor:
-        return self._as_target.predict_noise(noisy, t, condition, cfg_scale)
+        if not math.isfinite(cfg_scale):
+            raise ValueError(f"cfg_scale must be finite, got {cfg_scale}")
+        ab = self.schedule.alpha_bar(t, like=noisy)
+        x_t = noisy.to(ab.dtype)
+        sigma = (1.0 - ab).sqrt().clamp(min=_MIN_SIGMA)
+        x0 = self.current_fn(condition).to(device=noisy.device, dtype=ab.dtype).expand_as(x_t)
+        if self.error is not None:
+            x0 = self.error.counterpart_prediction(x0, _step_noise(x_t, ab, sigma, x0), ab)
+        return ((x_t - ab.sqrt() * x0) / sigma).to(noisy.dtype)
