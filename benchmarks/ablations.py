@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -56,35 +57,42 @@ METRICS = ("novel_psnr", "detail_psnr", "novel_ssim", "hf_ratio", "colour_deviat
 
 
 def run_ablations(scenes: list[Scene], schedule: Schedule, device: str, work: Path, eval_cfg: EvalConfig,
-                  rows: tuple[Row, ...] = ROWS, oracle: OracleConfig | None = None) -> list[dict[str, Any]]:
+                  rows: tuple[Row, ...] = ROWS, oracle: OracleConfig | None = None,
+                  on_record: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
     """One record per (scene, row): the row's metrics against ground truth, stage-2 time and guards.
 
-    Also one ``stage1`` record per scene: the DMTet stage's own texture, before any stage-2 row."""
+    Also one ``stage1`` record per scene: the DMTet stage's own texture, before any stage-2 row.
+    ``on_record`` sees each record as soon as it exists (to save it before the other rows end)."""
     store = schedule_store(work, schedule)
     dev = torch.device("cuda" if device == "cuda" else "cpu")
     base_cfg = schedule.config(device, ("texture.follow_plan=false",))
     records: list[dict[str, Any]] = []
+    add = on_record or (lambda _r: None)
     for scene in scenes:
         photo = photo_path(scene, work / "photos")
         key = scene.name
         out = run_scene(scene, photo, store, base_cfg, schedule.label, key, until="dmtet", oracle=oracle)
         if out.error:
             records.append({"scene": scene.name, "row": "stage1", "error": out.error})
+            add(records[-1])
             continue
         stage1 = evaluate(mesh_output(store, key, "dmtet", dev), scene, eval_cfg)
         records.append({"scene": scene.name, "row": "stage1", **stage1})
+        add(records[-1])
         for row in rows:
             cfg = schedule.config(device, ("texture.follow_plan=false", *row.overrides))
             t0 = time.perf_counter()
             out = run_scene(scene, photo, store, cfg, schedule.label, key, until="texture", oracle=oracle)
             if out.error:
                 records.append({"scene": scene.name, "row": row.name, "error": out.error})
+                add(records[-1])
                 continue
             metrics = evaluate(mesh_output(store, key, "texture", dev), scene, eval_cfg)
             records.append({"scene": scene.name, "row": row.name, **metrics,
                             "texture_wall_s": stage_wall_s(store, key, "texture"),
                             "guards": stage_guards(store, key, "texture"),
                             "bench_wall_s": round(time.perf_counter() - t0, 2)})
+            add(records[-1])
             log.info("%s %-16s novel PSNR %.2f  colour dev %.4f  HF %.3f", scene.name, row.name,
                      metrics["novel_psnr"] or float("nan"), metrics["colour_deviation"] or float("nan"),
                      metrics["hf_ratio"] or float("nan"))

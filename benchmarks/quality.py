@@ -25,7 +25,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -135,27 +135,30 @@ def worker_init(threads: int) -> None:
 Call = tuple[Callable[..., list[dict[str, Any]]], tuple[Any, ...]]
 
 
-def run_calls(calls: list[Call], jobs: int,
-              on_result: Callable[[int, list[dict[str, Any]]], None] | None = None) -> list[list[dict[str, Any]]]:
+def run_calls(calls: list[Call], jobs: int) -> list[list[dict[str, Any]]]:
     """Each ``fn(*args)`` of ``calls``, in ``jobs`` processes at once when > 1 (scenes are independent:
-    each has its own keys in the store, so results do not depend on it); results in call order.
-    ``on_result(i, result)`` runs as each call finishes (to save it before the others end)."""
-    done = on_result or (lambda _i, _r: None)
+    each has its own keys in the store, so results do not depend on it); results in call order."""
     if jobs <= 1 or len(calls) <= 1:
-        results = []
-        for i, (fn, a) in enumerate(calls):
-            results.append(fn(*a))
-            done(i, results[-1])
-        return results
+        return [fn(*a) for fn, a in calls]
     threads = max(1, torch.get_num_threads() // jobs)
     with ProcessPoolExecutor(min(jobs, len(calls)), mp_context=multiprocessing.get_context("spawn"),
                              initializer=worker_init, initargs=(threads,)) as pool:
-        futures = {pool.submit(fn, *a): i for i, (fn, a) in enumerate(calls)}
-        out: dict[int, list[dict[str, Any]]] = {}
-        for future in as_completed(futures):
-            out[futures[future]] = future.result()
-            done(futures[future], out[futures[future]])
-        return [out[i] for i in range(len(calls))]
+        futures = [pool.submit(fn, *a) for fn, a in calls]
+        return [f.result() for f in futures]
+
+
+def logged_ablations(log_path: Path, stamp: dict[str, Any], *args: Any) -> list[dict[str, Any]]:
+    """``run_ablations(*args)`` appending each finished record (with ``stamp``) to ``log_path`` at once, in
+    one write of one line (appends of whole lines from parallel workers do not interleave); failed rows are
+    logged, not saved, so the next run retries them."""
+    def save(record: dict[str, Any]) -> None:
+        if "error" in record:
+            log.warning("%s/%s failed (retried next run): %s", record["scene"], record["row"], record["error"])
+            return
+        with log_path.open("a", encoding="utf-8") as fh:
+            fh.write(json.dumps({**record, **stamp}, default=str) + "\n")
+
+    return run_ablations(*args, on_record=save)
 
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -242,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
             have.setdefault((r["seed"], r["scene"]), set()).add(r["row"])
         for scene in scenes.values():  # written once here: parallel calls of one scene would race on its photo
             photo_path(scene, work / "photos")
-        calls, keys = [], []
+        calls: list[Call] = []
         for seed in seeds:
             schedule = size.ablation if seed == 0 else replace(
                 size.ablation, label=f"{size.ablation.label}-seed{seed}",
@@ -250,24 +253,12 @@ def main(argv: list[str] | None = None) -> int:
             for n in names:
                 missing = tuple(r for r in rows if r.name not in have.get((seed, n), set()))
                 if missing:
-                    calls.append((run_ablations, ([scenes[n]], schedule, args.device, work, size.eval, missing,
-                                                  oracle)))
-                    keys.append((seed, n))
+                    stamp = {"seed": seed, "machine": common["machine"], "date": common["date"]}
+                    calls.append((logged_ablations, (log_path, stamp, [scenes[n]], schedule, args.device, work,
+                                                     size.eval, missing, oracle)))
         args.results.mkdir(parents=True, exist_ok=True)
-
-        def save(i: int, result: list[dict[str, Any]]) -> None:
-            seed, _ = keys[i]
-            fresh = [{**r, "seed": seed, "machine": common["machine"], "date": common["date"]}
-                     for r in result if "error" not in r]
-            kept.extend(fresh)
-            with log_path.open("a", encoding="utf-8") as fh:
-                fh.writelines(json.dumps(r, default=str) + "\n" for r in fresh)
-            failed = [r for r in result if "error" in r]
-            if failed:
-                log.warning("failed (retried next run): %s", "; ".join(f"{r['scene']}/{r['row']}: {r['error']}"
-                                                                       for r in failed))
-
-        run_calls(calls, args.jobs, save)
+        run_calls(calls, args.jobs)
+        kept = [r for r in _read_jsonl(log_path) if r["seed"] in seeds and r["scene"] in names]
         latest = {(r["seed"], r["scene"], r["row"]): r for r in kept}  # a resumed call re-scores stage 1
         by_seed = {seed: [r for (s_, _, row), r in latest.items() if s_ == seed and row in row_names | {"stage1"}]
                    for seed in seeds}
