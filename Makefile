@@ -47,10 +47,12 @@ dagster: $(STAMP)
 demo-frequency: $(STAMP)
 	$(PY) benchmarks/frequency_demo.py --out outputs/frequency_demo
 
-# Synthetic scenes with ground truth: ablations, error against time, stability (CPU size, about 45
-# minutes on 2 cores). BENCH_ARGS="--size large" for more steps and views; "--device cuda" on a GPU.
+# Synthetic scenes with ground truth and stochastic oracle priors: the paper's main ablation rows over
+# 3 scenes x 3 seeds, judged into benchmarks/results/findings.{json,md}, and error against time (CPU
+# size, under 30 minutes on 2 cores). BENCH_ARGS="--scenes all --rows findings" for every finding;
+# "--parts stability" for the stability sweep; "--device cuda" on a GPU.
 bench-quality: $(STAMP)
-	$(PY) -m benchmarks.quality $(BENCH_ARGS)
+	$(PY) -m benchmarks.quality --jobs 2 $(BENCH_ARGS)
 
 # Headless Chromium for tests/test_ui_*.py (Debian packages), installed when missing and apt-get is there.
 # Never fails the make run: without Chromium those tests skip and say why.

@@ -53,6 +53,7 @@ from ops.engine.gpu_lease import LEASE_DIR_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 PARTS = ("ablations", "error_time", "stability")
+DEFAULT_PARTS = ("ablations", "error_time")  # the stability sweep (13 runs to the GLB) on demand: --parts stability
 log = logging.getLogger("morpheus3d.bench")
 
 # The ablation schedule: the draft preset with a longer, finer texture stage, so stage 2 has the
@@ -75,14 +76,14 @@ class BenchSize:
 # The CPU default fits 30 minutes on 2 cores: the first three findings' rows on three scenes, one
 # with coarse print and two with fine detail; ``--scenes all --rows findings`` runs every finding.
 _CPU_ROWS = ("base", "full_pass_2d", "high_pass_2d_sds", "ours")
-_CPU_SCENES = ("mug", "box", "bottle")
+_CPU_SCENES = ("mug", "tin", "gift")
 
 SIZES: dict[str, BenchSize] = {
     "cpu": BenchSize(
         scenes=_CPU_SCENES, rows=_CPU_ROWS, ablation=_BENCH_CPU,
         # standard-size NeRF steps cost ~10 s on 2 cores (hash grid 2^19, normals): GPU sizes only
         timing=(Schedule("draft", "draft"), _BENCH_CPU),
-        timing_scenes=SCENE_NAMES,  # the GLB bars are means over all eight
+        timing_scenes=_CPU_SCENES,
         stability=Schedule("stability-cpu", "draft", steps=(60, 30, 30)), stability_scene="mug",
     ),
     "large": BenchSize(
@@ -175,7 +176,8 @@ def _read_jsonl(path: Path) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--size", choices=sorted(SIZES), default="cpu")
-    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
+    ap.add_argument("--parts", default=",".join(DEFAULT_PARTS),
+                    help=f"comma-separated subset of {', '.join(PARTS)} (default: {', '.join(DEFAULT_PARTS)})")
     ap.add_argument("--scenes", default="", help="comma-separated scene names for the ablations and error against "
                                                  "time, or 'all' (default: the size's)")
     ap.add_argument("--oracle", choices=ORACLE_KINDS, default="stochastic",
@@ -263,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         by_seed = {seed: [r for (s_, _, row), r in latest.items() if s_ == seed and row in row_names | {"stage1"}]
                    for seed in seeds}
         records = by_seed[seeds[0]]
-        judged = judge_all(by_seed, f"{size.ablation.label} ({oracle.kind} oracle)")
+        judged = judge_all(by_seed, f"{size.ablation.label}, {oracle.kind}, {args.device}, {len(names)} scenes")
         merged = merge_findings(args.results / "findings.json", judged)
         atomic_write_text(args.results / "findings.md", _FINDINGS_HEAD + findings_markdown(merged))
         _write(args.results, f"quality_ablations_{tag}", {

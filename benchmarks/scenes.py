@@ -1,5 +1,6 @@
 """Procedural product scenes with ground truth: a mug, a bottle, a carton, a vase, a sneaker, a lamp, a
-chair and a toy figure, each one closed ``TexturedMesh`` with a single texture atlas.
+chair and a toy figure, then a food tin, a gift box, a woven basket and a torch with fine detail, each
+one closed ``TexturedMesh`` with a single texture atlas.
 
 They give the benchmarks an object whose true shape and texture are known, and a "product photo" of
 it that goes through the same reference stage as a real photo:
@@ -9,6 +10,12 @@ it that goes through the same reference stage as a real photo:
   lookups never bleed from a neighbouring tile. Each texture mixes large flat colour regions with
   detail (prints, stripes, text-like marks, barcodes, grain) coarse enough to survive a 128–256 px
   render: the benchmark measures both colour deviation and lost detail.
+* The fine scenes (tin, gift, basket, torch) keep their appearance in the high spatial-frequency
+  band: small print, a tartan, a basket weave, a diamond knurl, with periods of ``FINE_PERIOD_PX`` px
+  in a ``BENCH_SIZE`` render, above 0.6 of its DCT band (the 2-D prior's high-pass bound). Periods
+  are chosen in texels from each tile's texels per render pixel (``_fine_period``); a revolved part
+  may spread its turn over several tiles (``sectors``) for the texels this needs. Their backs differ
+  from their fronts, and each has a thin part: a ring pull, ribbon loops, a cane handle, a lanyard ring.
 * Parts are closed once their UV-seam copies are welded, outward-wound and free of zero-area faces.
   They may interpenetrate (a handle through a mug wall); the union is still a closed surface per part.
 * Frame: y up, front towards +z (``morpheus_core.cameras``). Each scene is normalised like a photo
@@ -40,7 +47,8 @@ from morpheus_core.cameras import Cameras, orbit, reference_camera
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.textured import TexturedMesh, render_textured, sample_surface
 
-SCENE_NAMES: tuple[str, ...] = ("mug", "bottle", "box", "vase", "sneaker", "lamp", "chair", "figure")
+SCENE_NAMES: tuple[str, ...] = ("mug", "bottle", "box", "vase", "sneaker", "lamp", "chair", "figure",
+                                "tin", "gift", "basket", "torch")
 # Share of the image side taken by the object's longer side: 1 − 2·border_ratio of ops/intake/prepare.py.
 FRAME_FILL = 0.8
 REFERENCE_FOV_DEG = 40.0
@@ -54,6 +62,12 @@ CONTENT = TILE - 2 * MARGIN
 ATLAS_COLUMNS = 4
 
 AROUND = 64  # segments around a surface of revolution: smooth silhouettes at 256 px
+
+# The fine scenes (tin, gift, basket, torch) size their patterns for the quality benchmark's renders:
+# FINE_PERIOD_PX pixels at BENCH_SIZE puts a pattern's frequency at 2 / FINE_PERIOD_PX ≈ 0.7 of the
+# render's DCT band, above the 2-D prior's high-pass bound r = 0.6 (periods under 3.33 px).
+BENCH_SIZE = 128
+FINE_PERIOD_PX = 2.8
 
 SHADOW_DARKEST = 0.86  # the contact shadow's darkest value (white = 1)
 
@@ -86,54 +100,70 @@ def _tile_uv(uv: np.ndarray, cell: tuple[int, int] = (0, 0), cells: tuple[int, i
     return np.stack([u, v], axis=-1)
 
 
-def _revolve(profile: Sequence[tuple[float, float]], around: int = AROUND) -> tuple[np.ndarray, ...]:
+def _revolve(profile: Sequence[tuple[float, float]], around: int = AROUND, sectors: int = 1,
+             weights: Sequence[float] | None = None) -> tuple[np.ndarray, ...]:
     """Surface of revolution about the y axis of a polyline (r, y) running from one pole (r = 0) to
     the other, up the outside, so the surface is closed and outward-wound.
 
     u = angle / 2π with u = 0.5 facing +z (the seam sits at the back, away from the reference camera);
-    v = arc length along the profile, normalised. Each pole gets one vertex per segment (its own u), so
-    pole triangles are one per segment and never degenerate. Returns (vertices, faces, uvs, canon)."""
+    v = arc length along the profile, normalised (``_arc_v``: ``weights`` spend more or fewer texels
+    on chosen segments). Each pole gets one vertex per segment (its own u), so pole triangles are one
+    per segment and never degenerate. Returns (vertices, faces, uvs, canon).
+
+    ``sectors`` > 1 splits the turn into that many equal sectors, sector j centred on u = 0.5 + j /
+    sectors (j = 0 faces the camera, j = sectors / 2 the back), each with its own seam copies and its
+    own local u ∈ [0, 1]: vertices come sector by sector, so ``_revolved_part`` can give each sector
+    its own tile, ``sectors`` times the texels around the turn."""
     prof = np.asarray(profile, dtype=np.float64)
     if prof.ndim != 2 or prof.shape[0] < 3 or prof[0, 0] != 0.0 or prof[-1, 0] != 0.0:
         raise ValueError("a revolution profile needs ≥ 3 points (r, y) starting and ending on the axis")
     if (prof[1:-1, 0] <= 0.0).any() or (np.linalg.norm(np.diff(prof, axis=0), axis=1) == 0.0).any():
         raise ValueError("profile points between the poles must have r > 0 and be distinct")
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(prof, axis=0), axis=1))])
-    v_of = arc / arc[-1]
+    if sectors < 1 or (sectors > 1 and around % (2 * sectors)):
+        # Sector boundaries sit half a sector off the front: on whole segments only for multiples of 2k.
+        raise ValueError(f"{around} segments do not split into {sectors} sectors (need a multiple of {2 * sectors})")
+    v_of = _arc_v(prof, weights)
     n = prof.shape[0]
-    cols = around + 1  # the last column repeats the first with u = 1
-    u = np.arange(cols) / around
-    theta = math.pi + 2.0 * math.pi * u
-    x = prof[:, :1] * np.sin(theta)[None, :]
-    z = prof[:, :1] * np.cos(theta)[None, :]
-    y = np.broadcast_to(prof[:, 1:2], x.shape)
-    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3) + 0.0  # + 0.0 turns −0.0 into 0.0
-    uu = np.broadcast_to(u[None, :], x.shape).copy()
-    # Pole vertices sit mid-segment in u. Segment j's bottom triangle uses the pole copy of column j,
-    # its top triangle the copy of column j + 1 (the one unused copy of each pole is clipped into range).
-    uu[0, :] = np.minimum((np.arange(cols) + 0.5) / around, 1.0)
-    uu[-1, :] = np.maximum((np.arange(cols) - 0.5) / around, 0.0)
-    uvs = np.stack([uu, np.broadcast_to(v_of[:, None], x.shape)], axis=-1).reshape(-1, 2)
+    per = around // sectors  # segments per sector
+    cols = per + 1  # the last column of a sector repeats the first of the next
+    t = np.arange(cols)
+    start = 0.5 - 0.5 / sectors  # sector 0 spans u ∈ [start, start + 1 / sectors]
+    vertices, uvs, faces, canon = [], [], [], []
+    first: dict[int, int] = {}  # angular column (mod around) → the first copy's column, per row
+    for j in range(sectors):
+        u = start + (j * per + t) / around
+        theta = math.pi + 2.0 * math.pi * u
+        x = prof[:, :1] * np.sin(theta)[None, :]
+        z = prof[:, :1] * np.cos(theta)[None, :]
+        y = np.broadcast_to(prof[:, 1:2], x.shape)
+        vertices.append(np.stack([x, y, z], axis=-1).reshape(-1, 3) + 0.0)  # + 0.0 turns −0.0 into 0.0
+        uu = np.broadcast_to((t / per)[None, :], x.shape).copy()
+        # Pole vertices sit mid-segment in u. Segment j's bottom triangle uses the pole copy of column j,
+        # its top triangle the copy of column j + 1 (the one unused copy of each pole is clipped into range).
+        uu[0, :] = np.minimum((t + 0.5) / per, 1.0)
+        uu[-1, :] = np.maximum((t - 0.5) / per, 0.0)
+        uvs.append(np.stack([uu, np.broadcast_to(v_of[:, None], x.shape)], axis=-1).reshape(-1, 2))
 
-    index = np.arange(n * cols).reshape(n, cols)
-    canon = index.copy()
-    canon[:, -1] = canon[:, 0]
-    canon[0, :] = index[0, 0]
-    canon[-1, :] = index[-1, 0]
+        index = j * n * cols + np.arange(n * cols).reshape(n, cols)
+        column = np.array([first.setdefault(int((j * per + k) % around), j * cols + k) for k in t])
+        sector_canon = (column // cols) * n * cols + np.arange(n)[:, None] * cols + column % cols
+        sector_canon[0, :] = 0
+        sector_canon[-1, :] = (n - 1) * cols
+        canon.append(sector_canon.reshape(-1))
 
-    a, b = index[:-1, :-1], index[:-1, 1:]  # (i, j), (i, j + 1)
-    c, d = index[1:, :-1], index[1:, 1:]  # (i + 1, j), (i + 1, j + 1)
-    # (a, b, d) and (a, d, c): ∂/∂θ × ∂/∂profile points outwards for a profile going up the outside.
-    lower = np.stack([a, b, d], axis=-1)
-    upper = np.stack([a, d, c], axis=-1)
-    faces = [upper[0]]  # bottom pole ring: (a, b) collapse, keep (a, d, c)
-    for i in range(1, n - 2):
-        faces += [lower[i], upper[i]]
-    faces.append(lower[n - 2])  # top pole ring: (c, d) collapse, keep (a, b, d)
+        a, b = index[:-1, :-1], index[:-1, 1:]  # (i, j), (i, j + 1)
+        c, d = index[1:, :-1], index[1:, 1:]  # (i + 1, j), (i + 1, j + 1)
+        # (a, b, d) and (a, d, c): ∂/∂θ × ∂/∂profile points outwards for a profile going up the outside.
+        lower = np.stack([a, b, d], axis=-1)
+        upper = np.stack([a, d, c], axis=-1)
+        faces.append(upper[0])  # bottom pole ring: (a, b) collapse, keep (a, d, c)
+        for i in range(1, n - 2):
+            faces += [lower[i], upper[i]]
+        faces.append(lower[n - 2])  # top pole ring: (c, d) collapse, keep (a, b, d)
     faces_arr = np.concatenate(faces, axis=0).astype(np.int64)
-    canon = canon.reshape(-1)
+    canon_arr = np.concatenate(canon)
     # sin(π) and sin(3π) differ in the last bits: snap seam and pole copies onto one position.
-    return vertices[canon], faces_arr, uvs, canon
+    return np.concatenate(vertices)[canon_arr], faces_arr, np.concatenate(uvs), canon_arr
 
 
 def _torus(major: float, minor: float, around: int = 48, tube: int = 24) -> tuple[np.ndarray, ...]:
@@ -151,8 +181,8 @@ def _torus(major: float, minor: float, around: int = 48, tube: int = 24) -> tupl
     canon[-1, :] = canon[0, :]
     a, b = index[:-1, :-1], index[:-1, 1:]
     c, d = index[1:, :-1], index[1:, 1:]
-    # ∂/∂φ × ∂/∂θ is the outward tube normal, so walk v first: (a, c, d) and (a, d, b).
-    faces = np.concatenate([np.stack([a, c, d], -1).reshape(-1, 3), np.stack([a, d, b], -1).reshape(-1, 3)])
+    # ∂/∂θ × ∂/∂φ is the outward tube normal, so walk u first: (a, d, c) and (a, b, d).
+    faces = np.concatenate([np.stack([a, d, c], -1).reshape(-1, 3), np.stack([a, b, d], -1).reshape(-1, 3)])
     canon = canon.reshape(-1)
     return (vertices + 0.0)[canon], faces.astype(np.int64), uvs, canon
 
@@ -219,13 +249,20 @@ def _place(part: Part, scale: float | Sequence[float] = 1.0, rotate: np.ndarray 
     return Part(v[part.canon], part.faces, part.uvs, part.canon, part.texture)
 
 
-def _revolved_part(profile: Sequence[tuple[float, float]], texture: np.ndarray, around: int = AROUND) -> Part:
-    vertices, faces, uvs, canon = _revolve(profile, around)
-    return Part(vertices, faces, _tile_uv(uvs), canon, texture)
+def _revolved_part(profile: Sequence[tuple[float, float]], texture: np.ndarray, around: int = AROUND,
+                   sectors: int = 1, weights: Sequence[float] | None = None) -> Part:
+    """A surface of revolution; with ``sectors`` > 1 the texture is that many tiles side by side
+    (``_sector_texture``), sector j of the turn on tile j."""
+    if texture.shape[:2] != (TILE, sectors * TILE):
+        raise ValueError(f"{sectors} sector(s) need a {TILE}×{sectors * TILE} texture, got {texture.shape[:2]}")
+    vertices, faces, uvs, canon = _revolve(profile, around, sectors, weights)
+    per = uvs.shape[0] // sectors
+    tiled = [_tile_uv(uvs[j * per:(j + 1) * per], (j, 0), (sectors, 1)) for j in range(sectors)]
+    return Part(vertices, faces, np.concatenate(tiled), canon, texture)
 
 
-def _torus_part(major: float, minor: float, texture: np.ndarray) -> Part:
-    vertices, faces, uvs, canon = _torus(major, minor)
+def _torus_part(major: float, minor: float, texture: np.ndarray, around: int = 48, tube: int = 24) -> Part:
+    vertices, faces, uvs, canon = _torus(major, minor, around, tube)
     return Part(vertices, faces, _tile_uv(uvs), canon, texture)
 
 
@@ -234,11 +271,19 @@ def _box_part(size: tuple[float, float, float], faces_texture: np.ndarray) -> Pa
     return Part(vertices, faces, uvs, canon, faces_texture)
 
 
-def _arc_v(profile: Sequence[tuple[float, float]]) -> np.ndarray:
+def _arc_v(profile: Sequence[tuple[float, float]], weights: Sequence[float] | None = None) -> np.ndarray:
     """Each profile point's v (normalised arc length), as ``_revolve`` assigns it: painters use it to
-    put colour boundaries exactly on profile corners."""
+    put colour boundaries exactly on profile corners. ``weights`` (one per segment) scale each
+    segment's share of v: a weight below 1 on a lid or a base seldom seen leaves more of the tile's
+    texels for the wall that carries the print."""
     prof = np.asarray(profile, dtype=np.float64)
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(prof, axis=0), axis=1))])
+    lengths = np.linalg.norm(np.diff(prof, axis=0), axis=1)
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != lengths.shape or (w <= 0.0).any():
+            raise ValueError(f"need {lengths.shape[0]} positive segment weights, got {w.shape[0]}")
+        lengths = lengths * w
+    arc = np.concatenate([[0.0], np.cumsum(lengths)])
     return arc / arc[-1]
 
 
@@ -299,15 +344,31 @@ def _darker(colour: Colour, factor: float) -> Colour:
     return (r * factor, g * factor, b * factor)
 
 
+def _luma(colour: Colour) -> float:
+    """Rec. 709 luma: the brightness the benchmark's grey spectra see."""
+    r, g, b = colour
+    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+
+def _with_luma(colour: Colour, luma: float) -> Colour:
+    """``colour`` scaled to a given ``_luma`` (clipped to [0, 1]): the fine scenes set their large regions
+    apart by hue more than by brightness, so the fine print, not the layout, holds the contrast."""
+    r, g, b = colour
+    scale = luma / max(_luma(colour), 1e-6)
+    return (min(r * scale, 1.0), min(g * scale, 1.0), min(b * scale, 1.0))
+
+
 class Canvas:
     """A tile's content being painted, addressed in the part's own (u, v) ∈ [0, 1]² (v up; row 0 at
     v = 1). Detail sizes are in texels: a tile spans roughly 100–250 px of a 256 px render, so marks
-    of 3+ texels stay visible (not sub-pixel)."""
+    of 3+ texels stay visible (not sub-pixel). ``aspect`` is the width / height of the surface the tile
+    covers (a box face, half a turn of a can): ``lettering`` keeps letters round on a stretched tile."""
 
-    def __init__(self, colour: Colour, height: int = CONTENT, width: int = CONTENT) -> None:
+    def __init__(self, colour: Colour, height: int = CONTENT, width: int = CONTENT, aspect: float = 1.0) -> None:
         self.img = np.empty((height, width, 3), dtype=np.float32)
         self.img[:] = colour
         self.h, self.w = height, width
+        self.aspect = aspect
         jj, ii = np.meshgrid(np.arange(width), np.arange(height))
         self.u = (jj + 0.5) / width
         self.v = 1.0 - (ii + 0.5) / height
@@ -355,15 +416,142 @@ class Canvas:
             y += line
 
     def barcode(self, rng: np.random.Generator, u0: float, u1: float, v0: float, v1: float,
-                paper: Colour = (0.97, 0.95, 0.88)) -> None:
-        """A white patch with black bars 2–5 texels wide (a few pixels in the render)."""
+                paper: Colour = (0.97, 0.95, 0.88), bars: tuple[int, int] = (2, 6),
+                gaps: tuple[int, int] = (2, 5)) -> None:
+        """A white patch with black bars ``bars`` texels wide (upper bound excluded), ``gaps`` apart:
+        by default 2–5 texels, a few pixels in the render; 1–2 where a tile has texels to spare."""
         rows, cols = self._slices(u0, u1, v0, v1)
         self.img[rows, cols] = paper
         x = cols.start + 3
         while x < cols.stop - 6:
-            bar = int(rng.integers(2, 6))
+            bar = int(rng.integers(*bars))
             self.img[rows.start + 3:rows.stop - 3, x:x + bar] = (0.05, 0.05, 0.06)
-            x += bar + int(rng.integers(2, 5))
+            x += bar + int(rng.integers(*gaps))
+
+    def _glyph_grid(self, sideways: bool) -> tuple[float, float, int, int]:
+        """Cells per texel across and along a line of text, and the grid's (width, height) in cells:
+        physically square cells, as fine as the tile's coarser axis (``aspect``)."""
+        ku, kv = (1.0, 1.0 / self.aspect) if self.aspect >= 1.0 else (self.aspect, 1.0)
+        gw, gh = max(1, round(self.w * ku)), max(1, round(self.h * kv))
+        return ((ku, kv) if sideways else (kv, ku)) + (gw, gh)
+
+    def text_length(self, text: str, height: float, font: int = cv2.FONT_HERSHEY_SIMPLEX, thickness: int = 1,
+                    sideways: bool = False) -> float:
+        """The length in texels ``lettering`` gives ``text``."""
+        k_across, k_along, _, _ = self._glyph_grid(sideways)
+        scale = height * k_across / cv2.getTextSize("H", font, 1.0, thickness)[0][1]
+        return cv2.getTextSize(text, font, scale, thickness)[0][0] / k_along
+
+    def lettering(self, text: str, u: float, v: float, height: float, colour: Colour, align: str = "left",
+                  font: int = cv2.FONT_HERSHEY_SIMPLEX, thickness: int = 1, sideways: bool = False) -> None:
+        """Real letters in a Hershey font, capitals ``height`` texels tall, baseline through (u, v) with
+        the text's left end, centre or right end there (``align``). Drawn without anti-aliasing, so
+        1-texel strokes stay crisp: at 4–6 texels the glyphs are the finest print a tile can carry.
+        ``sideways`` runs the text along +v, upright on a revolved part laid along +x
+        (``_rotation("z", -90.0)``); ``height`` then counts texels along u. On a stretched tile
+        (``aspect`` ≠ 1) the text is drawn on a grid of physically square cells and widened onto the
+        tile, so letters keep their shape."""
+        k_across, _, gw, gh = self._glyph_grid(sideways)
+        scale = height * k_across / cv2.getTextSize("H", font, 1.0, thickness)[0][1]
+        shift = {"left": 0.0, "centre": 0.5, "right": 1.0}[align] * cv2.getTextSize(text, font, scale, thickness)[0][0]
+        if sideways:  # drawn on the transposed grid: text x along v, text down along u
+            mask = np.zeros((gw, gh), np.uint8)
+            origin = (round(v * gh - shift), round(u * gw))
+        else:
+            mask = np.zeros((gh, gw), np.uint8)
+            origin = (round(u * gw - shift), round((1.0 - v) * gh))
+        cv2.putText(mask, text, origin, font, scale, 255, thickness, cv2.LINE_8)
+        if sideways:
+            mask = np.ascontiguousarray(np.rot90(mask))
+        if mask.shape != (self.h, self.w):
+            mask = cv2.resize(mask, (self.w, self.h), interpolation=cv2.INTER_NEAREST)
+        self.where(mask > 0, colour)
+
+    def small_print(self, rng: np.random.Generator, u0: float, u1: float, v0: float, v1: float, colour: Colour,
+                    height: float = 5.0, line: float = 7.0, sideways: bool = False) -> None:
+        """A block of small print (ingredients, instructions): ragged lines ``line`` texels apart of
+        random lower-case words in real letters ``height`` texels tall (Hershey plain), finer than
+        ``text``'s blocks can go. ``sideways`` as in ``lettering``."""
+        across, down = ((v0, v1), (u0, u1)) if sideways else ((u0, u1), (v0, v1))
+        size = self.h if sideways else self.w
+        step = line / (self.w if sideways else self.h)
+        # Down the block: decreasing v for upright text, increasing u for sideways text.
+        pos = down[0] + step if sideways else down[1] - step
+        while (pos <= down[1]) if sideways else (pos >= down[0]):
+            end = across[1] - rng.uniform(0.0, 0.3) * (across[1] - across[0])
+            words: list[str] = []
+            while True:
+                word = "".join(chr(97 + int(c)) for c in rng.integers(0, 26, int(rng.integers(2, 9))))
+                width = self.text_length(" ".join([*words, word]), height, cv2.FONT_HERSHEY_PLAIN, sideways=sideways)
+                if across[0] + width / size > end:
+                    break
+                words.append(word)
+            if words:
+                at = (pos, across[0]) if sideways else (across[0], pos)
+                self.lettering(" ".join(words), *at, height, colour, font=cv2.FONT_HERSHEY_PLAIN, sideways=sideways)
+            pos += step if sideways else -step
+
+    def tartan(self, period_u: float, period_v: float, dark: Colour, accent: Colour | None = None,
+               region: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0), every: int = 3,
+               coords: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """A woven check over what is painted: bands of ``dark`` warp (across u) and weft (across v)
+        half a period wide, ``period_u`` × ``period_v`` texels (floats: ``_fine_period`` sizes them to a
+        few render pixels). One set alone shows half mixed with the ground (the weave lets it through),
+        both together in full; every ``every``-th period a thin ``accent`` line each way makes it a
+        tartan, ``accent=None`` leaves a gingham. ``coords`` (two arrays shaped like the tile, in the
+        periods' units) lay the check on other coordinates than the texel grid: a cloth over a pole
+        checked in world x, z instead of converging u lines."""
+        x, y = coords if coords is not None else (self.u * self.w, self.v * self.h)
+        cu, cv = x / period_u, y / period_v
+        warp, weft = (cu % 1.0) < 0.5, (cv % 1.0) < 0.5
+        u0, u1, v0, v1 = region
+        inside = (self.u >= u0) & (self.u < u1) & (self.v >= v0) & (self.v < v1)
+        dark_arr = np.asarray(dark, dtype=np.float32)
+        mixed = np.where((warp & weft)[..., None], dark_arr, 0.5 * self.img + 0.5 * dark_arr)
+        self.img = np.where((inside & (warp | weft))[..., None], mixed, self.img).astype(np.float32)
+        if accent is not None:  # a line a sixth of a period wide, in the middle of every few light bands
+            line = (((np.floor(cu) % every == 0) & (np.abs(cu % 1.0 - 0.75) < 1 / 12))
+                    | ((np.floor(cv) % every == 0) & (np.abs(cv % 1.0 - 0.75) < 1 / 12)))
+            self.where(inside & line, accent)
+
+    def knurl(self, period_u: float, period_v: float, region: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0),
+              depth: float = 0.45) -> None:
+        """Diamond knurling over what is painted: grooves at ±45° (in render pixels, given periods
+        that are equal there) cut the surface into diamonds, each a four-facet pyramid lit from the
+        upper left. The facets' brightness and the dark grooves make the diamonds read at ~3 px,
+        where a flat colour pattern of that size would blur into one tone."""
+        a = self.u * self.w / period_u + self.v * self.h / period_v
+        b = self.u * self.w / period_u - self.v * self.h / period_v
+        da, db = a % 1.0 - 0.5, b % 1.0 - 0.5
+        facet = np.where(np.abs(da) > np.abs(db), np.where(da > 0, 1.0 + 0.5 * depth, 1.0 - 0.3 * depth),
+                         np.where(db > 0, 1.0 + 0.15 * depth, 1.0 - 0.7 * depth))
+        groove = np.maximum(np.abs(da), np.abs(db)) > 0.4
+        shade = np.where(groove, 1.0 - depth, facet).astype(np.float32)
+        u0, u1, v0, v1 = region
+        inside = (self.u >= u0) & (self.u < u1) & (self.v >= v0) & (self.v < v1)
+        self.img = np.where(inside[..., None], self.img * shade[..., None], self.img).astype(np.float32)
+
+    def basket_weave(self, rng: np.random.Generator, period_u: float, period_v: float, stake: Colour,
+                     weaver: Colour, region: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0)) -> None:
+        """Plain basket weave: weavers running around (``period_v`` texels pitch) pass over and under
+        upright stakes (``period_u``), one step out of phase on each row. Each strand is shaded round
+        (bright middle, dark edges), a weaver darkens where it dives under a stake and each strand
+        gets its own slight tint, so the over/under reads at ~3 render px, not as a flat check."""
+        cu, cv = self.u * self.w / period_u, self.v * self.h / period_v
+        i, j = np.floor(cv).astype(np.int64), np.floor(cu).astype(np.int64)
+        fu, fv = cu % 1.0, cv % 1.0
+        over = (i + j) % 2 == 0  # the weaver lies on top of the stake here
+        rows_tint = 1.0 + 0.08 * rng.standard_normal(int(i.max() - i.min()) + 1)
+        cols_tint = 1.0 + 0.06 * rng.standard_normal(int(j.max() - j.min()) + 1)
+        weaver_shade = (0.45 + 0.55 * np.sin(math.pi * fv)) * (0.7 + 0.3 * np.sin(math.pi * fu)) \
+            * rows_tint[i - i.min()]
+        stake_shade = (0.45 + 0.55 * np.sin(math.pi * fu)) * (0.75 + 0.25 * np.sin(math.pi * fv)) \
+            * cols_tint[j - j.min()]
+        woven = np.where(over[..., None], np.asarray(weaver, np.float32) * weaver_shade[..., None],
+                         np.asarray(stake, np.float32) * stake_shade[..., None])
+        u0, u1, v0, v1 = region
+        inside = (self.u >= u0) & (self.u < u1) & (self.v >= v0) & (self.v < v1)
+        self.img = np.where(inside[..., None], woven, self.img).astype(np.float32)
 
     def grain(self, rng: np.random.Generator, fine: float = 0.06, coarse: float = 0.08, cells: int = 6) -> None:
         """Multiplicative noise: smooth blotches (``cells`` across) plus per-2-texel speckle."""
@@ -386,6 +574,31 @@ def _box_texture(canvases: dict[str, Canvas]) -> np.ndarray:
         col, row = k % 3, k // 3
         out[row * TILE:(row + 1) * TILE, col * TILE:(col + 1) * TILE] = canvases[name].tile()
     return out
+
+
+def _sector_texture(canvases: Sequence[Canvas]) -> np.ndarray:
+    """One tile per sector of a revolved part, side by side (``_revolved_part(..., sectors=k)``):
+    canvas 0 faces the camera, canvas k / 2 the back."""
+    return np.concatenate([canvas.tile() for canvas in canvases], axis=1)
+
+
+def _px_per_unit(long_side: float) -> float:
+    """Pixels of a ``BENCH_SIZE`` render per unit, seen face-on, of an object whose longer side is
+    ``long_side`` units before normalisation (which puts that side on ``FRAME_FILL`` of the frame)."""
+    return FRAME_FILL * BENCH_SIZE / long_side
+
+
+def _texels_per_px(span: float, long_side: float) -> float:
+    """Texels per pixel of a ``BENCH_SIZE`` render where a tile's ``CONTENT`` texels cover ``span`` units
+    of surface seen face-on (``_px_per_unit``)."""
+    return CONTENT / (span * _px_per_unit(long_side))
+
+
+def _fine_period(span: float, long_side: float, px: float = FINE_PERIOD_PX) -> float:
+    """A period in texels that is about ``px`` pixels of a ``BENCH_SIZE`` render (``_texels_per_px``),
+    rounded so a whole number of periods fills the tile: the pattern runs on unbroken across a
+    revolved part's seam and from one sector's tile to the next."""
+    return CONTENT / max(1, round(CONTENT / (px * _texels_per_px(span, long_side))))
 
 
 def _plain_box_texture(rng: np.random.Generator, colour: Colour, detail: Callable[[Canvas], None]) -> np.ndarray:
@@ -690,9 +903,373 @@ def _figure(rng: np.random.Generator) -> list[Part]:
     return parts
 
 
+_PRODUCTS = ("TOMATO SOUP", "BAKED BEANS", "SWEET CORN", "PEACHES", "CHICKPEAS", "PEAR HALVES", "LENTIL SOUP",
+             "APRICOTS")
+_BRANDS = ("Harvest", "Oakfield", "Marlow", "Sunvale", "Brookes", "Greystone", "Alder", "Northway")
+_NUTRIENTS = ("Energy", "Fat", "- saturates", "Carbohydrate", "- sugars", "Fibre", "Protein", "Salt")
+_INK = (0.06, 0.06, 0.07)
+
+
+def _tin(rng: np.random.Generator) -> list[Part]:
+    radius, height = 0.36 * rng.uniform(0.92, 1.08), 1.0 * rng.uniform(0.94, 1.06)
+    bead, sink = 0.012, 0.025
+    # Double-seamed rims stand proud of the wall; the lid is countersunk below the top rim.
+    profile = [(0.0, 0.0), (radius - 0.02, 0.0), (radius + bead, 0.02), (radius + bead, 0.045), (radius, 0.06),
+               (radius, height - 0.06), (radius + bead, height - 0.045), (radius + bead, height),
+               (radius - 0.02, height), (radius - 0.03, height - sink), (0.0, height - sink)]
+    # The base is seldom seen: its texels go to the label (the lid keeps half its share for its rings).
+    weights = [0.15, 1, 1, 1, 1, 1, 1, 1, 1, 0.5]
+    v = _arc_v(profile, weights)
+    lo, hi = v[4], v[5]  # the label covers the straight wall
+    span = hi - lo
+    wall_span = (height - 0.12) / span  # units of wall the tile's height would cover
+    per_v = _texels_per_px(wall_span, height)  # texels per render px up the label
+    aspect = math.pi * radius / wall_span  # two sectors: half a turn per tile
+    metal = _hsv(rng.uniform(0.1, 0.14), rng.uniform(0.0, 0.35), rng.uniform(0.7, 0.82))  # tinplate or gold lacquer
+    brand_c, paper_hue, fruit_c, ink_c = _palette(rng, 4, v=(0.55, 0.8))
+    paper = _with_luma(tuple(0.3 * c + 0.62 for c in paper_hue), 0.84)  # type: ignore[arg-type]
+    brand_c = _with_luma(brand_c, rng.uniform(0.5, 0.62))
+    ink_c = _with_luma(ink_c, 0.22)
+    product, brand = str(rng.choice(_PRODUCTS)), str(rng.choice(_BRANDS))
+    pu, pv = _fine_period(math.pi * radius, height), _fine_period(wall_span, height)
+    band_lo, band_hi = hi - 0.3 * span, hi - 0.06 * span
+    small, line = max(4.0, 2.0 * per_v), max(6.0, 3.0 * per_v)  # small print: 2 px capitals, 3 px lines
+
+    def metal_and_label(canvas: Canvas) -> None:
+        canvas.rect(0.0, 1.0, lo, hi, paper)  # type: ignore[arg-type]
+        # The paper is printed with fine pinstripes, the brand band with a halftone screen.
+        canvas.stripes(pu, 0.4, _darker(paper, 0.62), "u", (0.0, 1.0, lo, band_lo))  # type: ignore[arg-type]
+        canvas.rect(0.0, 1.0, band_lo, band_hi, brand_c)
+        dots = ((canvas.u * canvas.w / pu) % 1.0 - 0.5) ** 2 + ((canvas.v * canvas.h / pv) % 1.0 - 0.5) ** 2
+        canvas.where((dots < 0.12) & (canvas.v > band_lo) & (canvas.v < band_hi), _darker(brand_c, 0.45))
+        for edge in (band_lo - 3 / CONTENT, band_hi + 2 / CONTENT, lo + 0.04 * span):  # thin rules
+            canvas.rect(0.0, 1.0, edge, edge + 1 / CONTENT, ink_c)
+        for k in (1, 2, 7, 8):  # rolled seams: fine grooves around
+            canvas.stripes(pv, 0.5, _darker(metal, 0.65), "v", (0.0, 1.0, v[k], v[k + 1]))
+        canvas.stripes(3, 0.4, _darker(metal, 0.7), "v", (0.0, 1.0, v[9], v[10] - 0.01))  # lid rings
+
+    front = Canvas(metal, aspect=aspect)
+    metal_and_label(front)
+    white = (0.98, 0.97, 0.92)
+    front.lettering(product, 0.5, band_lo + 0.07 * span, 6.5 * per_v, white, "centre", cv2.FONT_HERSHEY_DUPLEX, 2)
+    front.lettering(brand, 0.5, band_hi - 0.065 * span, 3.0 * per_v, white, "centre", cv2.FONT_HERSHEY_TRIPLEX)
+    # The picture: a few fruit on a plate, shaded round with a highlight and a leaf each.
+    pic_v, fr = lo + 0.44 * span, 0.065
+    front.ellipse(0.5, pic_v - 0.12 * span, 0.21, 0.05 * span, (0.96, 0.96, 0.94))
+    front.ellipse(0.5, pic_v - 0.12 * span, 0.18, 0.035 * span, (0.84, 0.85, 0.86))
+    for k, du in enumerate(sorted(rng.uniform(-0.11, 0.11, 3))):
+        cu, cv = 0.5 + du, pic_v + (0.03 if k == 1 else -0.02) * span
+        dist = ((front.u - cu) / fr) ** 2 + ((front.v - cv) / (fr * aspect)) ** 2
+        shade = np.clip(1.15 - 0.5 * dist - 3.0 * (front.u - cu), 0.45, 1.25)[..., None]
+        front.img = np.where((dist <= 1.0)[..., None], np.asarray(fruit_c, np.float32) * shade,
+                             front.img).astype(np.float32)
+        front.ellipse(cu - 0.3 * fr, cv + 0.35 * fr * aspect, 0.15 * fr, 0.25 * fr * aspect, (0.97, 0.95, 0.9))
+        front.ellipse(cu + 0.25 * fr, cv + 1.1 * fr * aspect, 0.35 * fr, 0.2 * fr * aspect, (0.2, 0.5, 0.15))
+    front.lettering(f"in {rng.choice(('rich', 'light', 'natural'))} juice", 0.5, lo + 0.2 * span, 2.6 * per_v,
+                    ink_c, "centre", cv2.FONT_HERSHEY_SIMPLEX)
+    front.lettering(f"{int(rng.integers(2, 9)) * 50} g", 0.75, lo + 0.075 * span, 2.6 * per_v, ink_c, "centre")
+    front.small_print(rng, 0.2, 0.45, lo + 0.06 * span, lo + 0.15 * span, ink_c, small, line)
+
+    back = Canvas(metal, aspect=aspect)
+    metal_and_label(back)
+    back.lettering(f"{brand} {product.lower()}", 0.5, band_lo + 0.09 * span, 3.2 * per_v, white, "centre")
+    # The nutrition table: a title and ruled rows of names and values, on white.
+    row = line / CONTENT
+    top = band_lo - 0.05 * span
+    bottom = top - 1.6 * row - len(_NUTRIENTS) * row
+    back.rect(0.3, 0.7, bottom - 0.3 * row, top, (0.98, 0.98, 0.96))
+    back.lettering("Nutrition", 0.32, top - 1.2 * row, 1.2 * small, _INK, font=cv2.FONT_HERSHEY_DUPLEX)
+    back.lettering("per 100 g", 0.68, top - 1.2 * row, small, _INK, "right", cv2.FONT_HERSHEY_PLAIN)
+    back.rect(0.3, 0.7, top - 1.6 * row, top - 1.6 * row + 2 / CONTENT, _INK)
+    for k, nutrient in enumerate(_NUTRIENTS):
+        base = top - 1.6 * row - (k + 1) * row
+        value = f"{rng.uniform(0.1, 40.0):.1f} g" if k else f"{int(rng.integers(150, 1800))} kJ"
+        back.lettering(nutrient, 0.32, base + 0.2 * row, small, _INK, font=cv2.FONT_HERSHEY_PLAIN)
+        back.lettering(value, 0.68, base + 0.2 * row, small, _INK, "right", cv2.FONT_HERSHEY_PLAIN)
+        back.rect(0.3, 0.7, base, base + 1 / CONTENT, (0.35, 0.35, 0.35))
+    back.small_print(rng, 0.04, 0.27, lo + 0.08 * span, top, ink_c, small, line)  # ingredients
+    back.small_print(rng, 0.73, 0.96, lo + 0.3 * span, top, ink_c, small, line)  # cooking instructions
+    back.barcode(rng, 0.74, 0.94, lo + 0.07 * span, lo + 0.26 * span, bars=(1, 4), gaps=(1, 3))
+    back.lettering(" ".join(str(int(d)) for d in rng.integers(0, 10, 7)), 0.84, lo + 0.045 * span, small, _INK,
+                   "centre", cv2.FONT_HERSHEY_PLAIN)
+    for canvas in (front, back):
+        canvas.grain(rng, fine=0.03, coarse=0.03)
+    body = _revolved_part(_on_axis(profile), _sector_texture([front, back]), sectors=2, weights=weights)
+
+    ring_tex = Canvas((0.9, 0.9, 0.92))  # bright aluminium against the lid
+    ring_tex.stripes(3, 0.5, (0.6, 0.6, 0.64), "v")
+    ring_tex.grain(rng)
+    major = 0.21 * radius * rng.uniform(0.9, 1.1)
+    # The ring pull lies on the lid towards the front, sunk a little into it.
+    ring = _place(_torus_part(major, 0.009, ring_tex.tile(), around=32, tube=10), rotate=_rotation("x", 90.0),
+                  translate=(0.0, height - sink + 0.005, 0.5 * radius))
+    return [body, ring]
+
+
+def _gift(rng: np.random.Generator) -> list[Part]:
+    w, h, d = 1.0 * rng.uniform(0.92, 1.08), 0.58 * rng.uniform(0.9, 1.1), 0.75 * rng.uniform(0.9, 1.1)
+    lid_h, lip = 0.16 * rng.uniform(0.9, 1.1), 0.015
+    ground, dark_hue, ribbon_c, seal_c, lid_hue = _palette(rng, 5, v=(0.55, 0.85))
+    dark = _darker(dark_hue, 0.45)  # the check must differ in brightness, not only in hue
+    lid_c = _with_luma(lid_hue, _luma(ground))  # the lid: another hue, as bright
+    accent = tuple(0.4 * c + 0.6 for c in seal_c)
+    loop = 0.12 * rng.uniform(0.9, 1.1)
+    long_side = max(w + 2 * lip, h + lip + 2 * loop)
+    lw, ld = w + 2 * lip, d + 2 * lip  # the lid overhangs the body
+
+    def face(span_u: float, span_v: float, colour: Colour = ground) -> Canvas:
+        canvas = Canvas(colour, aspect=span_u / span_v)
+        canvas.tartan(_fine_period(span_u, long_side), _fine_period(span_v, long_side), dark, accent)  # type: ignore[arg-type]
+        return canvas
+
+    def ribbon(canvas: Canvas, along: str, span_across: float, span_along: float) -> None:
+        """A satin band 0.1 units wide across the face's middle, ``along`` u or v, with grosgrain ribs
+        across it ~3 px apart and darker selvedges."""
+        half = 0.05 / span_across
+        region = (0.5 - half, 0.5 + half, 0.0, 1.0) if along == "v" else (0.0, 1.0, 0.5 - half, 0.5 + half)
+        canvas.rect(*region, ribbon_c)
+        canvas.stripes(_fine_period(span_along, long_side), 0.4, _darker(ribbon_c, 0.7), "v" if along == "v" else "u",
+                       region)
+        edge = 1.5 / CONTENT
+        for at in (0.5 - half, 0.5 + half - edge):
+            canvas.rect(*((at, at + edge, 0.0, 1.0) if along == "v" else (0.0, 1.0, at, at + edge)),
+                        _darker(ribbon_c, 0.5))
+
+    body = {name: face(span, h) for name, span in (("front", w), ("right", d), ("back", w), ("left", d))}
+    per = _texels_per_px(h, long_side)  # texels per px up the side faces
+    shown = (h + lip - lid_h) / h  # the lid hides the body's faces above this v
+    # Front: a round foil seal with sunburst ridges ~3 px apart, the maker's name and a date.
+    front = body["front"]
+    radius = 0.36 * shown * h  # units
+    cu, cv = 0.5, 0.5 * shown
+    front.ellipse(cu, cv, 1.08 * radius / w, 1.08 * radius / h, _darker(seal_c, 0.55))
+    front.ellipse(cu, cv, radius / w, radius / h, seal_c)
+    dx, dy = (front.u - cu) * w, (front.v - cv) * h
+    rays = 2 * round(math.pi * radius * _px_per_unit(long_side) / FINE_PERIOD_PX)
+    ray = (np.arctan2(dy, dx) * rays / (2 * math.pi)) % 1.0 < 0.5
+    ring = (dx ** 2 + dy ** 2 < radius ** 2) & (dx ** 2 + dy ** 2 > (0.72 * radius) ** 2)
+    front.where(ring & ray, _darker(seal_c, 0.65))
+    name = str(rng.choice(_BRANDS))
+    front.lettering(name, cu, cv - 0.02 * shown, 2.4 * per, _INK, "centre", cv2.FONT_HERSHEY_TRIPLEX)
+    front.lettering(f"EST. {int(rng.integers(1890, 2010))}", cu, cv - 0.2 * shown, 1.6 * per, _INK, "centre",
+                    cv2.FONT_HERSHEY_PLAIN)
+    # Back: a printed label: "To" and "From" lines and a message in small print, a barcode and the
+    # maker's address.
+    back = body["back"]
+    small, line = max(4.0, 2.0 * per), max(6.0, 3.0 * per)
+    back.rect(0.14, 0.86, 0.1 * shown, 0.92 * shown, (0.7, 0.68, 0.62))
+    back.rect(0.15, 0.85, 0.115 * shown, 0.905 * shown, (0.94, 0.92, 0.85))
+    for label, at in (("To:", 0.8 * shown), ("From:", 0.67 * shown)):
+        back.lettering(label, 0.18, at, 2.4 * per, _INK, font=cv2.FONT_HERSHEY_SIMPLEX)
+        back.rect(0.18 + back.text_length(label, 2.4 * per) / CONTENT + 0.02, 0.56, at, at + 1 / CONTENT, _INK)
+    back.small_print(rng, 0.18, 0.56, 0.14 * shown, 0.58 * shown, (0.2, 0.2, 0.25), small, line)
+    back.barcode(rng, 0.62, 0.82, 0.5 * shown, 0.84 * shown, (0.94, 0.92, 0.85), bars=(1, 4), gaps=(1, 3))
+    back.small_print(rng, 0.62, 0.83, 0.14 * shown, 0.45 * shown, (0.2, 0.2, 0.25), small, line)
+    body["top"] = Canvas(_darker(ground, 0.9))  # under the lid
+    body["bottom"] = Canvas(_darker(ground, 0.9))
+    for canvas in body.values():
+        canvas.grain(rng, fine=0.03, coarse=0.04)
+    base = _place(_box_part((w, h, d), _box_texture(body)), translate=(0.0, h / 2, 0.0))
+
+    lid = {}
+    for name, span_u, span_v in (("front", lw, lid_h), ("right", ld, lid_h), ("back", lw, lid_h),
+                                 ("left", ld, lid_h), ("top", lw, ld), ("bottom", lw, ld)):
+        canvas = face(span_u, span_v, lid_c)
+        if name != "bottom":
+            ribbon(canvas, "v", span_u, span_v)
+        if name == "top":
+            ribbon(canvas, "u", span_v, span_u)
+        canvas.grain(rng, fine=0.03, coarse=0.04)
+        lid[name] = canvas
+    top = h + lip
+    cover = _place(_box_part((lw, lid_h, ld), _box_texture(lid)), translate=(0.0, top - lid_h / 2, 0.0))
+
+    # The bow: two thin satin loops leaning out from a knot, facing the camera.
+    bow_tex = Canvas(ribbon_c)
+    bow_tex.stripes(3, 0.4, _darker(ribbon_c, 0.7), "u")
+    bow_tex.grain(rng)
+    bow = bow_tex.tile()
+    lean = rng.uniform(30.0, 45.0)
+    parts = [base, cover]
+    for side in (-1, 1):
+        tilt = math.radians(lean)
+        centre = (side * 0.92 * loop * math.sin(tilt), top + 0.92 * loop * math.cos(tilt), 0.0)
+        parts.append(_place(_torus_part(loop, 0.011, bow, around=40, tube=10), rotate=_rotation("z", -side * lean),
+                            translate=centre))
+    knot = _plain_box_texture(rng, _darker(ribbon_c, 0.85), lambda c: c.stripes(8, 0.4, _darker(ribbon_c, 0.6)))
+    parts.append(_place(_box_part((0.07, 0.05, 0.06), knot), translate=(0.0, top + 0.015, 0.0)))
+    return parts
+
+
+def _basket(rng: np.random.Generator) -> list[Part]:
+    top_r, rim_h = 0.45 * rng.uniform(0.95, 1.05), 0.42 * rng.uniform(0.92, 1.08)
+    base_r, bead, dome = 0.72 * top_r, 0.022, 0.04 * rng.uniform(0.8, 1.2)
+    inner = top_r - 2 * bead
+    cloth = [(inner * math.cos(a), rim_h - 0.03 + dome * math.sin(a) ** 1.5) for a in np.linspace(0.0, math.pi / 2, 9)]
+    profile = _on_axis([(0.0, 0.0), (base_r - 0.04, 0.0), *_arc(base_r - 0.04, 0.04, 0.04, -90.0, 0.0, 3)[1:],
+                        (top_r, rim_h), *_arc(top_r - bead, rim_h, bead, 0.0, 180.0, 6)[1:],
+                        (inner, rim_h - 0.03), *cloth[1:]])
+    # The base and the cloth take a smaller share of v: the woven wall gets the texels.
+    weights = [0.3] + [1.0] * (len(profile) - 10) + [0.6] * 8
+    v = _arc_v(profile, weights)
+    wall_lo, wall_hi = v[4], v[5]  # profile points 4 and 5 bound the straight flared wall
+    rim_hi = v[12]  # the rim bead runs from v[5] to v[12], the cloth from v[13] to the pole
+    major = 0.89 * top_r  # the handle
+    long_side = max(2 * top_r, 2 * major + 0.03)
+    wall_len = math.hypot(top_r - base_r, rim_h - 0.04)
+    span_u = 2 * math.pi * (top_r + base_r) / 2 / 4  # four sectors: a quarter turn per tile
+    span_v = wall_len / (wall_hi - wall_lo)
+    willow = _hsv(rng.uniform(0.07, 0.12), rng.uniform(0.4, 0.6), rng.uniform(0.62, 0.82))  # natural cane
+    stake = _darker(willow, 0.8)
+    dyed, cloth_c, tag_c, stain = _palette(rng, 4, s=(0.5, 0.85), v=(0.4, 0.75))
+    pale = _with_luma(tuple(0.5 * x + 0.5 for x in dyed), 0.8)  # type: ignore[arg-type]  # the back's band
+    dyed = _with_luma(dyed, 0.35)
+    stain = _with_luma(stain, 0.6 * _luma(willow))  # the foot is dipped in a darker stain
+    pu, pv = _fine_period(span_u, long_side), _fine_period(span_v, long_side)
+    check = FINE_PERIOD_PX / _px_per_unit(long_side)  # ~3 px in world units
+    foot = wall_lo + 0.4 * (wall_hi - wall_lo)  # the base and the lowest rows are stained
+    band = wall_lo + 0.55 * (wall_hi - wall_lo)  # dyed rows above
+    canvases = []
+    for k in range(4):
+        c = Canvas(willow)
+        c.basket_weave(rng, pu, pv, stake, willow, (0.0, 1.0, 0.0, v[5]))
+        c.basket_weave(rng, pu, pv, _darker(stain, 0.8), stain, (0.0, 1.0, 0.0, foot))
+        # The rim: cane wrapped round the bead, diagonal turns ~3 px apart.
+        turns = (c.u * c.w + c.v * c.h) / pu
+        c.where((c.v >= v[5]) & (c.v < rim_hi) & (turns % 1.0 < 0.4), _darker(willow, 0.55))
+        # The cloth: a gingham napkin tucked into the rim, checked in world x, z.
+        r = np.interp(c.v, v[13:], [p[0] for p in profile[13:]])
+        theta = math.pi + 2.0 * math.pi * (0.375 + (k + c.u) / 4)  # ``_revolve``'s angle of sector k
+        c.rect(0.0, 1.0, rim_hi, 1.0, _with_luma(tuple(0.3 * x + 0.7 for x in cloth_c), 0.75))  # type: ignore[arg-type]
+        c.tartan(check, check, _with_luma(cloth_c, 0.22), region=(0.0, 1.0, rim_hi, 1.0),
+                 coords=(r * np.sin(theta), r * np.cos(theta)))
+        # A dark band round the front and sides, a wide pale one across the back (k = 2).
+        colour, rows = (pale, 6) if k == 2 else (dyed, 3)
+        c.basket_weave(rng, pu, pv, _darker(colour, 0.85), colour, (0.0, 1.0, band, band + rows * pv / CONTENT))
+        c.grain(rng, fine=0.04, coarse=0.05)
+        canvases.append(c)
+    body = _revolved_part(profile, _sector_texture(canvases), sectors=4, weights=weights)
+
+    # A thin cane handle: a whole ring whose lower half is buried in the basket under the cloth.
+    handle_tex = Canvas(_darker(willow, 0.9))
+    wrap = (handle_tex.u * handle_tex.w / 3.0 + handle_tex.v * 2.0) % 1.0
+    handle_tex.where(wrap < 0.4, _darker(willow, 0.55))
+    handle_tex.grain(rng)
+    handle = _place(_torus_part(major, 0.015, handle_tex.tile(), around=64, tube=10), translate=(0.0, major, 0.0))
+
+    # A leather tag with the maker's name, flat against the back wall.
+    tw, th = 0.2, 0.11
+    tag = {name: Canvas(tag_c, aspect=tw / th) for name in BOX_FACE_NAMES}
+    outside = tag["back"]  # the face looking away from the basket (towards −z)
+    outside.rect(0.06, 0.94, 0.1, 0.9, _darker(tag_c, 0.8))
+    outside.stripes(8, 0.5, _darker(tag_c, 0.45), "u", (0.08, 0.92, 0.14, 0.18))  # stitching
+    outside.stripes(8, 0.5, _darker(tag_c, 0.45), "u", (0.08, 0.92, 0.82, 0.86))
+    outside.lettering(str(rng.choice(_BRANDS)).upper(), 0.5, 0.47, 60, (0.95, 0.9, 0.75), "centre",
+                      cv2.FONT_HERSHEY_DUPLEX, 3)
+    outside.lettering("HANDWOVEN", 0.5, 0.27, 30, (0.95, 0.9, 0.75), "centre", cv2.FONT_HERSHEY_PLAIN, 2)
+    for canvas in tag.values():
+        canvas.grain(rng, fine=0.04)
+    slope = math.degrees(math.atan2(top_r - base_r, rim_h))
+    tag_y = 0.55 * rim_h
+    wall_r = base_r + (top_r - base_r) * tag_y / rim_h
+    tag_part = _place(_box_part((tw, th, 0.008), _box_texture(tag)), rotate=_rotation("x", -slope),
+                      translate=(0.0, tag_y, -(wall_r - 0.001)))
+    return [body, handle, tag_part]
+
+
+def _torch(rng: np.random.Generator) -> list[Part]:
+    body_r, head_r = 0.15 * rng.uniform(0.94, 1.06), 0.22 * rng.uniform(0.94, 1.06)
+    tail_len, body_len, head_len = 0.16, 0.8 * rng.uniform(0.92, 1.08), 0.34 * rng.uniform(0.92, 1.08)
+    ring_major = 0.07
+    long_side = tail_len + body_len + head_len + ring_major
+    anodised, accent = _palette(rng, 2, s=(0.5, 0.9), v=(0.35, 0.65))
+    # Bright enough for the knurl's facets to show (it shades multiplicatively); a light accent.
+    anodised, accent = _with_luma(anodised, rng.uniform(0.3, 0.45)), _with_luma(accent, 0.65)
+    white = (0.95, 0.95, 0.92)
+
+    tail_profile = _on_axis([(0.0, 0.0), *_arc(body_r + 0.005 - 0.02, 0.02, 0.02, -90.0, 0.0, 3),
+                             (body_r + 0.005, tail_len), (0.0, tail_len)])
+    tv = _arc_v(tail_profile)
+    tail_tex = Canvas(_darker(anodised, 0.85))
+    # Grip rings round the tail cap, ~3 px apart, and the rubber switch boot at its end.
+    grip = _fine_period((tail_len - 0.02) / (tv[-2] - tv[-3]), long_side)
+    tail_tex.stripes(grip, 0.45, _darker(anodised, 0.45), "v", (0.0, 1.0, tv[-3] + 0.03, tv[-2] - 0.03))
+    tail_tex.rect(0.0, 1.0, 0.0, 0.7 * tv[1], (0.16, 0.16, 0.17))  # ridged like a rubber boot
+    tail_tex.stripes(_fine_period(tail_len / (tv[-3] - tv[0]), long_side), 0.45, (0.07, 0.07, 0.08), "v",
+                     (0.0, 1.0, 0.0, 0.7 * tv[1]))
+    tail_tex.grain(rng, fine=0.04)
+    tail = _revolved_part(tail_profile, tail_tex.tile(), around=32)
+
+    y0 = tail_len - 0.01
+    body_profile = [(0.0, y0), (body_r, y0), (body_r, y0 + body_len), (0.0, y0 + body_len)]
+    weights = [0.2, 1.0, 0.2]  # the ends hide inside the tail cap and the head
+    bv = _arc_v(body_profile, weights)
+    span_v = body_len / (bv[2] - bv[1])
+    knurl_hi = bv[1] + 0.68 * (bv[2] - bv[1])  # knurled from the tail; the smooth rest carries the print
+    per_u = _texels_per_px(math.pi * body_r, long_side)
+    pu, pv = _fine_period(math.pi * body_r, long_side), _fine_period(span_v, long_side)
+    sides = []
+    for k in range(2):
+        c = Canvas(anodised, aspect=math.pi * body_r / span_v)
+        c.knurl(pu, pv, (0.0, 1.0, bv[1] + 0.02, knurl_hi), depth=0.65)
+        c.stripes(pv, 0.5, _darker(anodised, 0.86), "v", (0.0, 1.0, knurl_hi, bv[2]))  # lathe-turned rings
+        c.rect(0.0, 1.0, knurl_hi, knurl_hi + 2 / CONTENT, accent)  # an accent ring
+        if k == 0:  # the front: the maker's name and the rating, along the smooth part
+            mid, room = 0.5 * (knurl_hi + bv[2]), 0.8 * (bv[2] - knurl_hi) * CONTENT  # texels along v
+            name = str(rng.choice(_BRANDS)).upper()
+            cap = 3.2 * per_u  # ~3 px capitals, smaller where the name would not fit the smooth part
+            cap *= min(1.0, room / c.text_length(name, cap, cv2.FONT_HERSHEY_DUPLEX, 2, sideways=True))
+            c.lettering(name, 0.55, mid, cap, white, "centre", cv2.FONT_HERSHEY_DUPLEX, 2, sideways=True)
+            rating = f"{int(rng.integers(4, 30)) * 50} LM  IPX{int(rng.integers(4, 9))}"
+            cap = 1.8 * per_u
+            cap *= min(1.0, room / c.text_length(rating, cap, cv2.FONT_HERSHEY_PLAIN, sideways=True))
+            c.lettering(rating, 0.66, mid, cap, accent, "centre", cv2.FONT_HERSHEY_PLAIN, sideways=True)
+            c.rect(0.38, 0.38 + 1.5 / CONTENT, knurl_hi + 0.05, bv[2] - 0.05, accent)  # a thin rule above
+        c.grain(rng, fine=0.03, coarse=0.03)
+        sides.append(c)
+    body = _revolved_part(body_profile, _sector_texture(sides), sectors=2, weights=weights)
+
+    h0 = y0 + body_len - 0.02
+    head_profile = _on_axis([(0.0, h0), (body_r + 0.004, h0), (body_r + 0.004, h0 + 0.04),
+                             (head_r, h0 + 0.45 * head_len), (head_r, h0 + 0.85 * head_len),
+                             (head_r + 0.012, h0 + 0.88 * head_len), (head_r + 0.012, h0 + head_len),
+                             (head_r - 0.02, h0 + head_len), (head_r - 0.03, h0 + head_len - 0.015),
+                             (0.0, h0 + head_len - 0.015)])
+    head_weights = [0.2, 1, 1, 1, 1, 1, 1, 1, 1.5]
+    hv = _arc_v(head_profile, head_weights)
+    head_arc = float(np.dot(np.linalg.norm(np.diff(np.asarray(head_profile), axis=0), axis=1), head_weights))
+    ring_period = _fine_period(head_arc, long_side)  # rings ~3 px apart along the profile
+    head_tex = Canvas(anodised)
+    # Cooling fins round the flare; the cylinder stays smooth; crenellations round the bezel.
+    head_tex.stripes(ring_period, 0.45, _darker(anodised, 0.5), "v", (0.0, 1.0, hv[2], hv[3]))
+    head_tex.stripes(ring_period, 0.5, _darker(anodised, 0.86), "v", (0.0, 1.0, hv[3], hv[5]))  # lathe-turned
+    head_tex.stripes(_fine_period(2 * math.pi * head_r, long_side), 0.5, _darker(anodised, 0.5), "u",
+                     (0.0, 1.0, hv[5], hv[7]))
+    # The lens: reflector rings and the LED in the middle.
+    head_tex.rect(0.0, 1.0, hv[8], 1.0, (0.85, 0.87, 0.89))
+    head_tex.stripes(ring_period, 0.45, (0.5, 0.52, 0.56), "v", (0.0, 1.0, hv[8], 1.0 - 0.12 * (1.0 - hv[8])))
+    head_tex.rect(0.0, 1.0, 1.0 - 0.1 * (1.0 - hv[8]), 1.0, (1.0, 0.93, 0.55))
+    head_tex.grain(rng, fine=0.03, coarse=0.03)
+    head = _revolved_part(head_profile, head_tex.tile(), weights=head_weights)
+
+    # A pocket clip on the back: a thin steel strip, its far end pressed onto the body.
+    clip_len = 0.3 * rng.uniform(0.9, 1.1)
+    clip = _place(_box_part((0.035, clip_len, 0.012), _plain_box_texture(rng, (0.78, 0.79, 0.8), lambda c: None)),
+                  rotate=_rotation("x", 2.0), translate=(0.0, y0 + body_len - 0.06 - clip_len / 2, -(body_r + 0.004)))
+
+    ring_tex = Canvas((0.75, 0.76, 0.78))
+    ring_tex.stripes(3, 0.5, (0.45, 0.46, 0.5), "u")
+    ring_tex.grain(rng)
+    # A thin split ring through the tail cap's lanyard hole, hanging below the axis.
+    ring = _place(_torus_part(ring_major, 0.009, ring_tex.tile(), around=32, tube=10),
+                  translate=(0.4 * body_r, 0.05 - ring_major, 0.0))
+    lying = _rotation("z", -90.0)  # the torch lies along +x, head to the right
+    return [_place(part, rotate=lying) for part in (tail, body, head, clip, ring)]
+
+
 _BUILDERS: dict[str, Callable[[np.random.Generator], list[Part]]] = {
     "mug": _mug, "bottle": _bottle, "box": _carton, "vase": _vase, "sneaker": _sneaker, "lamp": _lamp,
-    "chair": _chair, "figure": _figure,
+    "chair": _chair, "figure": _figure, "tin": _tin, "gift": _gift, "basket": _basket, "torch": _torch,
 }
 # Each scene draws from its own stream, so seed s of two scenes never share random numbers.
 _STREAM = {name: 7919 * (k + 1) for k, name in enumerate(SCENE_NAMES)}
