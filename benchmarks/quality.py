@@ -197,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                                                         "are shared out between them); results are the same")
     ap.add_argument("--ablation-seeds", default="0,1,2",
                     help="pipeline seeds: every seed runs every row, for the spread the findings are judged against")
+    ap.add_argument("--from-records", action="store_true",
+                    help="run nothing: write the ablation tables and findings from the records log alone (e.g. records "
+                         "brought back from a GPU machine)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     for noisy in ("morpheus3d", "morpheus3d.pipeline"):
@@ -259,8 +262,12 @@ def main(argv: list[str] | None = None) -> int:
                     calls.append((logged_ablations, (log_path, stamp, [scenes[n]], schedule, args.device, work,
                                                      size.eval, missing, oracle)))
         args.results.mkdir(parents=True, exist_ok=True)
-        run_calls(calls, args.jobs)
+        if not args.from_records:
+            run_calls(calls, args.jobs)
         kept = [r for r in _read_jsonl(log_path) if r["seed"] in seeds and r["scene"] in names]
+        ran_on = sorted({r["machine"] for r in kept if r.get("machine")})
+        if ran_on:  # the records say where they ran (several machines when a run went on elsewhere)
+            common = {**common, "machine": "; ".join(ran_on), "date": max(r["date"] for r in kept if r.get("date"))}
         latest = {(r["seed"], r["scene"], r["row"]): r for r in kept}  # a resumed call re-scores stage 1
         by_seed = {seed: [r for (s_, _, row), r in latest.items() if s_ == seed and row in row_names | {"stage1"}]
                    for seed in seeds}
