@@ -127,10 +127,10 @@ def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[s
 
 
 def findings_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
-    lines = ["| size | finding (paper) | metric | a | b | Δ (b − a) | per seed | spread | verdict |",
-             "|---|---|---|---:|---:|---:|---|---:|---|"]
+    lines = ["| size | finding (paper) | metric | a | b | Δ (b − a) | per seed | spread | scenes | verdict |",
+             "|---|---|---|---:|---:|---:|---|---:|---:|---|"]
     for r in rows:
         per = ", ".join(f"{d:+.2f}" for d in r["delta_per_seed"])
         lines.append(f"| {r['size']} | {r['finding']} ({r['paper']}) | {r['metric']} | {r['a']:.2f} | {r['b']:.2f} "
-                     f"| {r['delta']:+.2f} | {per} | {r['spread']:.2f} | **{r['verdict']}** |")
+                     f"| {r['delta']:+.2f} | {per} | {r['spread']:.2f} | {len(r['scenes'])} | **{r['verdict']}** |")
     return "\n".join(lines) + "\n"

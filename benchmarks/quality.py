@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
         ap.error(f"unknown part(s) {unknown}; choose from {PARTS}")
-    if args.device == "cuda" and not torch.cuda.is_available():
+    if args.device == "cuda" and not torch.cuda.is_available() and not args.from_records:
         ap.error("--device cuda but no CUDA device is visible")
     size = SIZES[args.size]
     if args.set:
@@ -225,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     tag += f"_{args.tag}" if args.tag else ""
     oracle = OracleConfig.named(args.oracle)
     tag += "_noise-free" if oracle.kind == "noise-free" else ""
-    common = {"machine": machine(args.device), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+    common = {"machine": "(the records' machines)" if args.from_records else machine(args.device),
+              "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
               "command": "python -m benchmarks.quality " + " ".join(argv if argv is not None else sys.argv[1:]),
               "size": args.size, "device": args.device, "seed": args.seed, "eval": asdict(size.eval),
               "oracle": oracle.describe(), "oracle_kind": oracle.kind,
@@ -272,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         by_seed = {seed: [r for (s_, _, row), r in latest.items() if s_ == seed and row in row_names | {"stage1"}]
                    for seed in seeds}
         records = by_seed[seeds[0]]
-        judged = judge_all(by_seed, f"{size.ablation.label}, {oracle.kind}, {args.device}, {len(names)} scenes")
+        judged = judge_all(by_seed, f"{size.ablation.label}, {oracle.kind} oracle, {args.device}")
         merged = merge_findings(args.results / "findings.json", judged)
         atomic_write_text(args.results / "findings.md", _FINDINGS_HEAD + findings_markdown(merged))
         _write(args.results, f"quality_ablations_{tag}", {
