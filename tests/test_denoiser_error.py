@@ -146,3 +146,31 @@ def test_bad_parameters_and_a_missing_current_fn_are_refused() -> None:
         DenoiserError(spectrum_amplitude=float("nan"))
     with pytest.raises(ValueError, match="current_fn"):
         ProxyPrior(lambda c: c, SCHEDULE, error=DenoiserError())
+
+
+def test_the_oracle_is_stochastic_by_default_and_noise_free_by_name() -> None:
+    from benchmarks.oracle import OracleConfig
+
+    default = OracleConfig()
+    assert default.kind == "stochastic" and set(default.errors()) == {"3d", "2d"}
+    assert default.errors()["2d"].drift_hue_sd > 0 and default.errors()["3d"].drift_hue_sd == 0
+    quiet = OracleConfig.named("noise-free")
+    assert quiet.kind == "noise-free" and quiet.errors() == {} and "noise-free" in quiet.describe()
+    with pytest.raises(ValueError, match="noise-free"):
+        OracleConfig.named("perfect")
+
+
+def test_with_the_error_model_vsd_and_sds_residuals_differ() -> None:
+    """The noise-free proxy's VSD residual equals SDS's; the stochastic one's does not (VSD removes the
+    counterpart's shared error), so the benchmark can tell the two apart."""
+    target, x0 = _images(19), _images(20)
+    eps = _eps(21, x0)
+    t = torch.full((2,), 250)
+    xt = SCHEDULE.add_noise(x0, eps, t)
+    cond = _Cond(target, x0)
+    for model, differ in ((None, False), (DenoiserError(), True)):
+        prior = _prior(model)
+        sds = prior.predict_noise(xt, t, cond, 1.0) - eps
+        vsd = prior.predict_noise(xt, t, cond, 1.0) - CurrentRenderCounterpart(
+            lambda c: c.current, SCHEDULE, model).predict_noise(xt, t, cond, 1.0)
+        assert (not torch.allclose(sds, vsd, atol=1e-6)) == differ
