@@ -118,8 +118,12 @@ def machine(device: str) -> str:
 def _write(results: Path, stem: str, payload: dict[str, Any], markdown: str) -> None:
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_text(results / f"{stem}.json", json.dumps(payload, indent=1, default=str, allow_nan=True) + "\n")
-    head = (f"Machine: {payload['machine']}; date: {payload['date']}; command: `{payload['command']}`; "
-            f"wall time {payload['wall_s'] / 60:.1f} min.\n\n")
+    if payload.get("from_records"):
+        head = (f"Records from: {payload['machine']}; latest {payload['date']}; tables written by "
+                f"`{payload['command']}` from `{stem}.records.jsonl`.\n\n")
+    else:
+        head = (f"Machine: {payload['machine']}; date: {payload['date']}; command: `{payload['command']}`; "
+                f"wall time {payload['wall_s'] / 60:.1f} min.\n\n")
     atomic_write_text(results / f"{stem}.md", f"# {payload['title']}\n\n{head}{payload['about']}\n\n{markdown}")
 
 
@@ -232,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
               "command": "python -m benchmarks.quality " + " ".join(argv if argv is not None else sys.argv[1:]),
               "size": args.size, "device": args.device, "seed": args.seed, "eval": asdict(size.eval),
               "oracle": oracle.describe(), "oracle_kind": oracle.kind,
-              "overrides": list(args.set)}
+              "overrides": list(args.set), "from_records": args.from_records}
     work = args.work / tag
     if "ablations" in parts:
         t0 = time.perf_counter()
