@@ -11,9 +11,10 @@ two sides' ranges over the seeds):
 * a flatness claim (``expect`` = 0, a sweep's rows) is ``reproduced`` when the sweep's range of means
   stays within the spread, ``refuted`` when it exceeds twice the spread, else ``inconclusive``.
 
-"Better" is higher for PSNR-like metrics and lower for errors (``LOWER_IS_BETTER``). The records are
-the ablation records of ``benchmarks/ablations.py`` (``row`` names) or error-against-time records
-(``schedule`` labels, GLB point). ``findings.json`` holds one list of objects over every size run.
+"Better" is higher for PSNR-like metrics and lower for errors (``LOWER_IS_BETTER``). The records
+are the ablation records of ``benchmarks/ablations.py`` (``row`` names; ``key`` names another
+field, e.g. a schedule label, for records compared by something else). ``findings.json`` holds one
+list of objects over every size run.
 """
 
 from __future__ import annotations
@@ -104,12 +105,6 @@ def judge_all(by_seed: Mapping[int, Sequence[Mapping[str, Any]]], size: str,
               findings: Sequence[Finding] = FINDINGS, metrics: Sequence[str] = FINDING_METRICS,
               key: str = "row") -> list[dict[str, Any]]:
     return [row for f in findings for m in metrics if (row := judge(f, by_seed, m, size, key)) is not None]
-
-
-def glb_records(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Error-against-time records flattened to their GLB point (for the "more steps pay" finding)."""
-    return [{"scene": r["scene"], "schedule": r["schedule"], **r["points"][-1]}
-            for r in records if "error" not in r and r.get("points")]
 
 
 def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
