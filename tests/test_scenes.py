@@ -386,19 +386,3 @@ def test_fine_scenes_backs_differ_from_fronts() -> None:
     repeated = _front_back_difference(_with_texture(tin, texture))
     print(f"tin with its front on its back: {repeated:.3f}")
     assert repeated < 0.1 * FRONT_BACK_FLOOR
-
-
-def test_fine_scenes_build_quickly() -> None:
-    """Under 2 s of one CPU core each, textures, packing and normalisation included."""
-    seed, threads = _fresh_seed(), torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        make_scene("mug", seed)  # warm-up
-        for name in FINE_SCENES:
-            start = time.process_time()
-            make_scene(name, seed)
-            seconds = time.process_time() - start
-            print(f"{name}: {seconds:.2f} s CPU")
-            assert seconds < 2.0, name
-    finally:
-        torch.set_num_threads(threads)
