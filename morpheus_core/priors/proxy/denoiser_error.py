@@ -103,16 +103,22 @@ class DenoiserError:
 
     def noise_error(self, noise: Tensor, alpha_bar: Tensor) -> Tensor:
         """The noise-driven x̂0 error for the step's noise ε (B×C×H×W): ε's DCT shaped by √E_t."""
-        spectrum = self.error_spectrum(alpha_bar, noise.shape[-2], noise.shape[-1])
-        return idct2(dct2(noise) * spectrum.sqrt())
+        return self._noise_error(dct2(noise), alpha_bar)
+
+    def _noise_error(self, noise_dct: Tensor, alpha_bar: Tensor) -> Tensor:
+        spectrum = self.error_spectrum(alpha_bar, noise_dct.shape[-2], noise_dct.shape[-1])
+        return idct2(noise_dct * spectrum.sqrt())
 
     def colour_drift(self, target: Tensor, noise: Tensor) -> Tensor:
         """The per-call colour drift of ``target`` (low band only), its hue and tint read from ε."""
+        return self._colour_drift(target, dct2(noise))
+
+    def _colour_drift(self, target: Tensor, noise_dct: Tensor) -> Tensor:
         if not (self.drift_hue_sd or self.drift_tint_sd):
             return torch.zeros_like(target)
         if target.shape[-3] != 3:
             raise ValueError("colour drift needs RGB images (3 channels at dim -3)")
-        z = dct2(noise)[..., -1, -_DRIFT_COEFFS:].flatten(1)  # B × (3·4) standard normals
+        z = noise_dct[..., -1, -_DRIFT_COEFFS:].flatten(1)  # B × (3·4) standard normals
         hue = self.drift_hue_sd * z[:, 0]
         tint = self.drift_tint_sd * z[:, 1:4].reshape(-1, 3, 1, 1)
         return filter_residual(rotate_hue(target, hue) + tint - target, BandMask.low_pass(self.drift_r))
@@ -126,7 +132,8 @@ class DenoiserError:
 
     def predictions(self, target: Tensor, noise: Tensor, alpha_bar: Tensor, cfg_scale: float) -> Tensor:
         """The guided x̂0 = x̂0_u + s·(x̂0_c − x̂0_u) of the frozen prior (``target`` = the role's truth)."""
-        conditional = target + self.noise_error(noise, alpha_bar) + self.colour_drift(target, noise)
+        noise_dct = dct2(noise)  # one transform serves the error and the drift
+        conditional = target + self._noise_error(noise_dct, alpha_bar) + self._colour_drift(target, noise_dct)
         if cfg_scale == 1.0:
             return conditional
         return conditional + (cfg_scale - 1.0) * self.guidance_shift(target, alpha_bar)
