@@ -34,6 +34,7 @@ from typing import Any
 import torch
 
 from benchmarks.error_time import POINTS, run_error_time
+from benchmarks.oracle import ORACLE_KINDS, OracleConfig
 from benchmarks.quality import SIZES, _write, machine, worker_init
 from benchmarks.scene_eval import EvalConfig
 from benchmarks.scene_runs import Schedule, photo_path, schedule_store
@@ -44,12 +45,14 @@ OPTIMISING = ("nerf", "dmtet", "texture")
 STOPPING = ("nerf", "dmtet")
 # paper/10: the paper's schedule at a tenth of its steps, long enough for the NeRF stage to run 40 % of
 # its steps with all hash-grid levels on (the rule may stop it only then) and short enough for one device call.
+# paper/40 and paper/20 are the shorter points of the schedule curve (``benchmarks/schedule_curve.py``).
 BASES = {s.label: s for s in (SIZES["cpu"].ablation, *SIZES["gpu"].timing,
+                              Schedule("paper/40", "paper", steps=(250, 125, 125)),
                               Schedule("paper/10", "paper", steps=(1000, 500, 500)))}
 METRICS = ("novel_psnr", "chamfer", "fscore")
 
 
-def _variant(base: Schedule, seed: int, early: bool) -> Schedule:
+def variant_schedule(base: Schedule, seed: int, early: bool) -> Schedule:
     cfg = base.config("cpu")
     logs = tuple(f"{s}.loop.log_every={max(1, getattr(cfg, s).loop.steps // 40)}" for s in OPTIMISING)
     stops = tuple(f"{s}.loop.early_stop={str(early and s in STOPPING).lower()}" for s in OPTIMISING)
@@ -68,13 +71,22 @@ def _steps(work: Path, schedule: Schedule, scene: str) -> dict[str, dict[str, in
     return out
 
 
+def oracle_work(work: Path, oracle: OracleConfig) -> Path:
+    """The runs' work folder for this oracle: the stage fingerprints do not see the oracle, so each
+    oracle keeps its own stores."""
+    return Path(work) / oracle.kind
+
+
 def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str, work: Path, eval_cfg: EvalConfig,
-        jobs: int, log: Path, variants: tuple[bool, ...] = (False, True)) -> tuple[list[dict[str, Any]], list[str]]:
+        jobs: int, log: Path, variants: tuple[bool, ...] = (False, True),
+        oracle: OracleConfig | None = None) -> tuple[list[dict[str, Any]], list[str]]:
     """Every cell not yet in ``log``, ``jobs`` at a time; each finished record is appended to ``log``
     (JSON lines) at once, so a run cut short by a time limit keeps what it finished and the next
     run with the same log goes on from there. A cell that raises is reported (its traceback on
     stderr) and left out of ``log``, so the next run retries it; the others go on. Returns the
     records and the failed cells' labels."""
+    oracle = oracle or OracleConfig()
+    work = oracle_work(work, oracle)
     by_name = {s.name: s for s in make_scenes(0, scenes)}
     for scene in by_name.values():  # written once here: the workers would race on the same photo
         photo_path(scene, work / "photos")
@@ -92,17 +104,18 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
         try:
             result = outcome()
         except Exception:  # one broken cell must not cost the records of the cells still running
-            failed.append(f"{_variant(base, seed, early).label} {name}")
+            failed.append(f"{variant_schedule(base, seed, early).label} {name}")
             print(f"FAILED {failed[-1]}:\n{traceback.format_exc()}", file=sys.stderr, flush=True)
             return
-        rec = {**result[0], "base": base.label, "seed": seed, "early_stop": early, "machine": where,
+        rec = {**result[0], "base": base.label, "seed": seed, "early_stop": early, "oracle": oracle.kind,
+               "machine": where,
                "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-               "steps": _steps(work, _variant(base, seed, early), name)}
+               "steps": _steps(work, variant_schedule(base, seed, early), name)}
         records.append(rec)
         with log.open("a", encoding="utf-8") as fh:
             fh.write(json.dumps(rec, default=str) + "\n")
 
-    args = [([by_name[name]], [_variant(base, seed, early)], device, work, eval_cfg)
+    args = [([by_name[name]], [variant_schedule(base, seed, early)], device, work, eval_cfg, oracle)
             for base, seed, early, name in cells]
     if jobs <= 1:
         for cell, a in zip(cells, args, strict=True):
@@ -196,6 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("outputs/early_stop"))
     ap.add_argument("--results", type=Path, default=RESULTS)
     ap.add_argument("--name", default="")
+    ap.add_argument("--oracle", choices=ORACLE_KINDS, default="stochastic",
+                    help="the priors' oracle (benchmarks/oracle.py); each keeps its own stores under --work")
     ap.add_argument("--variants", default="fixed,early",
                     help="which runs of each cell: fixed, early or both; one alone only appends records "
                          "(compare two record files with benchmarks/records_ab.py)")
@@ -222,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes = list(dict.fromkeys(r["scene"] for r in records))
     else:
         records, failed = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
-                              args.results / f"{name}.records.jsonl", variants)
+                              args.results / f"{name}.records.jsonl", variants, OracleConfig.named(args.oracle))
         if failed:
             print(f"{len(failed)} cells failed (tracebacks above), left out: {failed}", file=sys.stderr)
         if len(variants) == 1 or not records:

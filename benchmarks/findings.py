@@ -121,6 +121,28 @@ def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[s
     return merged
 
 
+FINDINGS_HEAD = """\
+# The paper's findings on the synthetic-scene benchmark
+
+Written by `python -m benchmarks.quality` and `python -m benchmarks.schedule_curve`
+(`benchmarks/findings.py`): each row compares two ablation rows (or two schedules) on the same
+scenes and pipeline seeds. a, b: means over scenes and seeds; Δ: the mean paired difference b − a
+(for a flatness claim: the sweep's range of means); spread: the larger of the rows' ranges over the
+seeds. `reproduced`: the claimed direction by more than the spread, every seed agreeing (flatness:
+range within the spread); `refuted`: the other way by more than the spread (flatness: over twice the
+spread); otherwise `inconclusive`. Sizes and their machines, dates and commands:
+`quality_ablations_<size>.md`, `schedule_curve_<gpu>.md`.
+
+"""
+
+
+def write_findings(results: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Merge ``rows`` into ``results/findings.json`` and rewrite ``findings.md`` from the merged list."""
+    merged = merge_findings(results / "findings.json", rows)
+    atomic_write_text(results / "findings.md", FINDINGS_HEAD + findings_markdown(merged))
+    return merged
+
+
 def findings_markdown(rows: Sequence[Mapping[str, Any]]) -> str:
     lines = ["| size | finding (paper) | metric | a | b | Δ (b − a) | per seed | spread | scenes | verdict |",
              "|---|---|---|---:|---:|---:|---|---:|---:|---|"]

@@ -21,6 +21,8 @@
 #   AB_ORDER (default "ref new") sets which runs first. Run both orders (two calls) and join them with
 #   benchmarks/speed_ab.py: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever
 #   setting it ran (benchmarks/results/vae_precision_h200.md).
+# curve: fixed schedules under each oracle at once (ES_RUNS="stochastic:paper/40,paper/10:0,1:8 noise-free:paper/10:0:4",
+#   ES_SCENES), then the bake variants of benchmarks/bake_gap.py on the paper/10 stores (BAKE_TIMEOUT s, BAKE_NAME).
 # es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
 #   ES_PATCH, both at once, on the defaults (the fixed schedules: --variants fixed); records named
 #   ${ES_NAME}_{ref,new}; compare them with benchmarks.records_ab.
@@ -59,6 +61,32 @@ if [ "$mode" = early_stop ]; then
   name=${ES_NAME:-early_stop_h200}
   [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"  # go on from it
   early_stop_run "$name" /tmp/es "$out/early_stop.log" --schedules "${ES_SCHEDULES:-draft}"
+  exit 0
+fi
+if [ "$mode" = curve ]; then
+  # The schedule curve: ES_RUNS entries "oracle:schedules:seeds:jobs" run at once (fixed schedules, ES_SCENES),
+  # records ${ES_NAME}_<oracle> going on from benchmarks/results/ copies; GPU memory logged every 15 s; then,
+  # while BAKE_TIMEOUT lasts, the bake variants of benchmarks/bake_gap.py on the stores of the paper/10 runs.
+  export PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+  (while true; do nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader >> "$out/gpu_mem.log"
+     sleep 15; done) & monitor=$!
+  pids=()
+  for entry in ${ES_RUNS:?oracle:schedules:seeds:jobs entries}; do
+    IFS=: read -r oracle schedules seeds jobs <<< "$entry"
+    name=${ES_NAME:-schedule_curve}_$oracle
+    [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"
+    ES_SEEDS=$seeds ES_JOBS=$jobs early_stop_run "$name" /tmp/es "$out/early_stop_$oracle.log" \
+      --schedules "$schedules" --variants fixed --oracle "$oracle" & pids+=($!)
+  done
+  wait "${pids[@]}"
+  kill $monitor
+  if [ "${BAKE_TIMEOUT:-0}" != 0 ]; then
+    cat "$out"/*_stochastic.records.jsonl "$out"/*_noise-free.records.jsonl 2>/dev/null \
+      | grep '"base": "paper/10"' > /tmp/bake_runs.jsonl
+    timeout "$BAKE_TIMEOUT" python -m benchmarks.bake_gap --device cuda --work /tmp/es --jobs 8 \
+      --records /tmp/bake_runs.jsonl --results "$out" --name "${BAKE_NAME:-bake_gap}" > "$out/bake_gap.log" 2>&1
+    echo "bake_gap exit $?" >> "$out/bake_gap.log"
+  fi
   exit 0
 fi
 if [ "$mode" = es_ab ]; then

@@ -36,7 +36,7 @@ import torch
 from assets_store.atomic import atomic_write_text
 from benchmarks.ablations import FINDING_ROWS, ROWS, run_ablations
 from benchmarks.error_time import run_error_time
-from benchmarks.findings import findings_markdown, judge_all, merge_findings
+from benchmarks.findings import findings_markdown, judge_all, write_findings
 from benchmarks.oracle import ORACLE_KINDS, OracleConfig
 from benchmarks.quality_report import (
     ablation_markdown,
@@ -280,8 +280,7 @@ def main(argv: list[str] | None = None) -> int:
                    for seed in seeds}
         records = by_seed[seeds[0]]
         judged = judge_all(by_seed, f"{size.ablation.label}, {oracle.kind} oracle, {args.device}")
-        merged = merge_findings(args.results / "findings.json", judged)
-        atomic_write_text(args.results / "findings.md", _FINDINGS_HEAD + findings_markdown(merged))
+        write_findings(args.results, judged)
         _write(args.results, f"quality_ablations_{tag}", {
             **common, "title": "Ablations on synthetic scenes with oracle priors", "wall_s": time.perf_counter() - t0,
             "schedule": asdict(size.ablation), "scenes": list(names), "records": records,
@@ -339,18 +338,6 @@ VSD counterpart repeats part of the frozen prior's error, so they differ (README
 oracle"). Every seed runs every row; the findings table judges each claim against the seed spread.
 """
 
-_FINDINGS_HEAD = """\
-# The paper's findings on the synthetic-scene benchmark
-
-Written by `python -m benchmarks.quality` (`benchmarks/findings.py`): each row compares two ablation
-rows on the same scenes and pipeline seeds. a, b: means over scenes and seeds; Δ: the mean paired
-difference b − a (for a flatness claim: the sweep's range of means); spread: the larger of the rows'
-ranges over the seeds. `reproduced`: the claimed direction by more than the spread, every seed
-agreeing (flatness: range within the spread); `refuted`: the other way by more than the spread
-(flatness: over twice the spread); otherwise `inconclusive`. Sizes and their machines, dates and
-commands: `quality_ablations_<size>.md`.
-
-"""
 
 _ABOUT_TIME = """\
 Scenes: {scenes}. Each schedule runs the whole pipeline with the oracle priors; after every stage

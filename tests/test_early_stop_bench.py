@@ -14,7 +14,7 @@ def test_a_failing_cell_costs_only_itself_and_is_retried(tmp_path: Path, monkeyp
     rng = random.Random(5)
     calls: list[str] = []
 
-    def fake_run(scenes, schedules, device, work, eval_cfg):  # the worker's signature
+    def fake_run(scenes, schedules, device, work, eval_cfg, oracle):  # the worker's signature
         calls.append(scenes[0].name)
         if scenes[0].name == "box":
             raise RuntimeError("CUDA error: an illegal memory access")
