@@ -40,7 +40,7 @@ VARIANTS: dict[str, tuple[str, ...]] = {
     "preset": (),  # the paper preset: 1024²
     "2048²": ("bake.map.texture_size=2048",),
     "4096²": ("bake.map.texture_size=4096",),
-    "2048², no decimation": ("bake.map.texture_size=2048", "bake.max_faces=1000000"),
+    "2048² undecimated": ("bake.map.texture_size=2048", "bake.max_faces=1000000"),
 }
 METRICS = ("novel_psnr", "detail_psnr")
 
