@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         files = [log]
     else:
         files = args.from_records
-    records = [json.loads(line) for f in files for line in f.read_text().splitlines() if line]
+    records = [json.loads(line) for f in files if f.is_file() for line in f.read_text().splitlines() if line]
     if not records:
         print("no bake records", file=sys.stderr)
         return 1

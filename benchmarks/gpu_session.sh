@@ -66,7 +66,7 @@ fi
 if [ "$mode" = curve ]; then
   # The schedule curve: ES_RUNS entries "oracle:schedules:seeds:jobs" run at once (fixed schedules, ES_SCENES),
   # records ${ES_NAME}_<oracle> going on from benchmarks/results/ copies; GPU memory logged every 15 s; then,
-  # while BAKE_TIMEOUT lasts, the bake variants of benchmarks/bake_gap.py on the stores of the paper/10 runs.
+  # while BAKE_TIMEOUT lasts, the bake variants of benchmarks/bake_gap.py on the stores of the BAKE_BASE (paper/10) runs.
   export PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
   (while true; do nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader >> "$out/gpu_mem.log"
      sleep 15; done) & monitor=$!
@@ -82,7 +82,7 @@ if [ "$mode" = curve ]; then
   kill $monitor
   if [ "${BAKE_TIMEOUT:-0}" != 0 ]; then
     cat "$out"/*_stochastic.records.jsonl "$out"/*_noise-free.records.jsonl 2>/dev/null \
-      | grep '"base": "paper/10"' > /tmp/bake_runs.jsonl
+      | grep "\"base\": \"${BAKE_BASE:-paper/10}\"" > /tmp/bake_runs.jsonl
     timeout "$BAKE_TIMEOUT" python -m benchmarks.bake_gap --device cuda --work /tmp/es --jobs 8 \
       --records /tmp/bake_runs.jsonl --results "$out" --name "${BAKE_NAME:-bake_gap}" > "$out/bake_gap.log" 2>&1
     echo "bake_gap exit $?" >> "$out/bake_gap.log"
