@@ -144,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     curves = {o: curve(rows, o) for o in ("stochastic", "noise-free") if any(r["oracle"] == o for r in rows)}
     machines = sorted({r["machine"] for r in records if r.get("machine")})
-    size = f"{'/'.join(sorted({r['base'] for r in rows}, key=_steps))}, stochastic oracle, {machines[0]}"
+    size = (f"{' → '.join(sorted({r['base'] for r in rows}, key=_steps))}, stochastic oracle, "
+            f"{machines[0].split(',')[0]}")
     judged = more_steps_finding(rows, size)
     if judged:
         write_findings(args.results, judged)
