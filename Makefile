@@ -30,9 +30,12 @@ DAGSTER_HOME_DIR := $(if $(DAGSTER_PG_HOST),dagster_home_postgres,dagster_home)
 DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/$(DAGSTER_HOME_DIR) DAGSTER_SCHEDULE_GRPC_TIMEOUT_SECONDS=600 MORPHEUS_PHOTO_DIR=$${MORPHEUS_PHOTO_DIR:-examples/photos} \
 	MORPHEUS_STORE=$${MORPHEUS_STORE:-outputs/demo} MORPHEUS_PRESET=$${MORPHEUS_PRESET:-draft}
 
+DEMO_MINUTES := 40
 # The main job on the bundled photos through Dagster: all six assets per photo, draft preset (a few
 # minutes on a CPU); prints where the GLBs and QA reports are. `make dagster` then shows the runs.
 demo: $(STAMP)
+	@echo "make demo: bottle, box and mug through the six Dagster assets, one after another (draft preset):"
+	@echo "  about $(DEMO_MINUTES) min on 2 idle CPU cores the first time, seconds once cached. Progress follows on stderr."
 	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster materialize
 	$(VENV)/bin/morpheus3d report --store $${MORPHEUS_STORE:-outputs/demo} --out $${MORPHEUS_STORE:-outputs/demo}/report.html
 
@@ -54,13 +57,16 @@ demo-frequency: $(STAMP)
 bench-quality: $(STAMP)
 	$(PY) -m benchmarks.quality --jobs 2 $(BENCH_ARGS)
 
-# Headless Chromium for tests/test_ui_*.py (Debian packages), installed when missing and apt-get is there.
-# Never fails the make run: without Chromium those tests skip and say why.
+# Headless Chromium for tests/test_ui_*.py (Debian packages), installed when missing and apt-get is there,
+# as root or through `sudo -n` (never a password prompt); NO_APT=1 skips it. Never fails the make run:
+# without Chromium those tests skip and say why.
 APT := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n) env DEBIAN_FRONTEND=noninteractive apt-get
+APT_HOW := $(shell [ "$$(id -u)" = 0 ] && echo "as root" || echo "through sudo -n")
 browser:
-	@if [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
+	@if [ -n "$(NO_APT)" ]; then echo "NO_APT set: not installing Chromium; tests/test_ui_*.py skip without it"; \
+	elif [ ! -x /usr/bin/chromium ] || [ ! -x /usr/bin/chromedriver ]; then \
 	  if command -v apt-get >/dev/null 2>&1; then \
-	    echo "Installing chromium and chromium-driver (apt-get) for tests/test_ui_*.py"; \
+	    echo "Installing the Debian packages chromium chromium-driver with apt-get $(APT_HOW), for tests/test_ui_*.py (NO_APT=1 skips)"; \
 	    { $(APT) update -qq && $(APT) install -y -qq chromium chromium-driver; } >/dev/null 2>&1 \
 	      || echo "Could not install Chromium: tests/test_ui_*.py will skip"; \
 	  else \
@@ -68,11 +74,12 @@ browser:
 	  fi; \
 	fi
 
-# Debian's PostgreSQL server for tests/test_postgres_instance.py, the same way (never fails; the test skips).
+# Debian's PostgreSQL server for tests/test_postgres_instance.py, the same way (NO_APT=1 skips; never fails).
 postgres:
-	@if ! command -v initdb >/dev/null 2>&1 && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
+	@if [ -n "$(NO_APT)" ]; then echo "NO_APT set: not installing PostgreSQL; tests/test_postgres_instance.py skips without it"; \
+	elif ! command -v initdb >/dev/null 2>&1 && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
 	  if command -v apt-get >/dev/null 2>&1; then \
-	    echo "Installing postgresql (apt-get) for tests/test_postgres_instance.py"; \
+	    echo "Installing the Debian package postgresql with apt-get $(APT_HOW), for tests/test_postgres_instance.py (NO_APT=1 skips)"; \
 	    { $(APT) update -qq && $(APT) install -y -qq postgresql; } >/dev/null 2>&1 \
 	      || echo "Could not install PostgreSQL: tests/test_postgres_instance.py will skip"; \
 	  else \
