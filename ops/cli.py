@@ -116,7 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
     prep = sub.add_parser("prepare", help="photo(s) -> recentred RGBA + mask references, reference.json, plan.json")
     prep.add_argument("photo", type=Path, help="a photo, or a folder of photos (one output folder per photo)")
     prep.add_argument("--out", type=Path, required=True, help="output folder (for a folder of photos: its parent)")
-    prep.add_argument("--strict", action="store_true", help="exit 1 when any photo failed (default: report only)")
+    leniency = prep.add_mutually_exclusive_group()
+    leniency.add_argument("--allow-failures", action="store_true",
+                          help="exit 0 even when photos failed (a folder where some bad files are expected); "
+                               "the outcome table still names them")
+    # The default since a failed photo always exits 1; kept so that scripts passing it keep working.
+    leniency.add_argument("--strict", action="store_true", help="exit 1 when any photo failed (the default)")
     prep.add_argument("--force", action="store_true", help="redo photos whose reference is already up to date")
     prep.add_argument("--rembg-model", type=Path, help="u2net .onnx file or folder (default: $U2NET_HOME)")
     prep.add_argument("--no-rembg", action="store_true", help="skip rembg; use the classical chain")
@@ -126,8 +131,11 @@ def build_parser() -> argparse.ArgumentParser:
     prep.add_argument("--min-confidence", type=float, default=None,
                       help="stop a photo whose mask confidence is below this (default: SegmentConfig's; 0 accepts all)")
     run = sub.add_parser("run", help="photo(s) -> textured GLB: every stage, cached and resumable, in --out")
-    run.add_argument("photo", type=Path, help="a photo, or a folder of photos")
-    run.add_argument("--out", type=Path, required=True, help="the asset store: <out>/<photo-key>/<stage>/")
+    # Optional in the parser so that --list-keys works alone; run_command requires them otherwise.
+    run.add_argument("photo", type=Path, nargs="?", help="a photo, or a folder of photos (not needed with "
+                     "--list-keys)")
+    run.add_argument("--out", type=Path, help="the asset store: <out>/<photo-key>/<stage>/ (required unless "
+                     "--list-keys)")
     run.add_argument("--preset", default="draft", choices=["draft", "standard", "paper"],
                      help="schedule and sizes (draft: minutes on a CPU; paper: the paper's schedule on a GPU)")
     run.add_argument("--init-mesh", type=Path, help="refine an existing asset (GLB/OBJ): skips the NeRF stage")
@@ -139,7 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="optimise N photos together: they share each prior forward, outputs as one by one. "
                           "On a GPU, 4-8 photos per batch (higher throughput); on a CPU keep 1 (default). A killed "
                           "batch resumes only when re-run with the same photos")
-    run.add_argument("--list-keys", action="store_true", help="print every overridable setting and exit")
+    run.add_argument("--list-keys", action="store_true", help="print every overridable setting (with the "
+                     "--preset's value and --set's applied) and exit; needs no photo or --out")
     rep = sub.add_parser("report", help="the run catalog as one self-contained HTML page")
     rep.add_argument("--store", type=Path, help="the asset store (catalog at <store>/.catalog/; relative paths in "
                      "the catalog's rows are relative to it)")
@@ -233,6 +242,11 @@ def run_command(args: argparse.Namespace) -> int:
         for key, value, doc in describe_keys(cfg):
             print(f"{key:<52} {json.dumps(to_dict(value), default=str):<12} {doc}")
         return 0
+    missing = [what for what, value in (("a photo or folder", args.photo), ("--out", args.out)) if value is None]
+    if missing:
+        print(f"morpheus3d run: give {' and '.join(missing)} (usage: morpheus3d run PHOTO --out STORE; "
+              "morpheus3d run --list-keys needs neither)", file=sys.stderr)
+        return 2
     if args.init_mesh is not None and not args.init_mesh.is_file():
         print(f"morpheus3d run: --init-mesh {args.init_mesh}: no such file", file=sys.stderr)
         return 2
@@ -268,11 +282,12 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def prepare(args: argparse.Namespace) -> int:
-    """Prepare one photo or a folder; print the outcome table; exit 1 only for failures under --strict."""
+    """Prepare one photo or a folder; print the outcome table; exit 1 when any photo failed, naming
+    them on stderr (``--allow-failures``: exit 0, for folders where some bad files are expected)."""
     from ops.intake.photo import LoadConfig
     from ops.intake.photo_folder import list_photos
     from ops.intake.prepare import PrepareConfig
-    from ops.intake.prepare_batch import format_table, prepare_many, print_progress
+    from ops.intake.prepare_batch import failed_photos, format_table, prepare_many, print_progress
     from ops.intake.segment import SegmentConfig
     from ops.stages.plan import PlanConfig
 
@@ -305,8 +320,17 @@ def prepare(args: argparse.Namespace) -> int:
         print(f"morpheus3d prepare: {args.photo}: no such file or folder", file=sys.stderr)
         return 2
     print(format_table(outcomes))
-    failed = any(o.status == "failed" for o in outcomes)
-    return 1 if failed and args.strict else 0
+    failed = failed_photos(outcomes)
+    if not failed:
+        return 0
+    if args.allow_failures:
+        print(f"morpheus3d prepare: {len(failed)} of {len(outcomes)} photo(s) failed (allowed by --allow-failures): "
+              f"{', '.join(failed)}", file=sys.stderr)
+        return 0
+    print(f"morpheus3d prepare: {len(failed)} of {len(outcomes)} photo(s) failed: {', '.join(failed)} (the "
+          "table above says why and how to fix each; --allow-failures exits 0 when some failures are expected)",
+          file=sys.stderr)
+    return 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -129,12 +129,19 @@ def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="morpheus3d-dagster", description=__doc__.split("\n\n")[0])
+# Help text is plain (no reStructuredText ``literals`` or Markdown `code`): people read it in a terminal.
+DESCRIPTION = "Register photos as partitions and materialise them through Dagster."
+EPILOG = ("Runs are recorded in the Dagster instance at $DAGSTER_HOME (make dagster shows them in the UI). "
+          "Backfills through the daemon: dagster job backfill -w workspace.yaml -j morpheus_photos "
+          "--partitions KEY,KEY --noprompt (see the README).")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="morpheus3d-dagster", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("--photos", type=Path, help="photo folder (default $MORPHEUS_PHOTO_DIR or examples/photos)")
     parser.add_argument("--store", type=Path, help="asset store root (default $MORPHEUS_STORE)")
     parser.add_argument("--preset", choices=["draft", "standard", "paper"], help="default $MORPHEUS_PRESET or draft")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, text in (("add-photos", "register photos as partitions and print their keys"),
                        ("materialize", "run all six assets for the photos, one run per photo, in this process"),
                        ("status", "fresh / stale / missing stages per registered photo")):
@@ -145,8 +152,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     pool.add_argument("--limit", type=int, help="this limit instead of the GPU count")
     pool.add_argument("--force", action="store_true", help="replace a limit set before")
     sub.add_parser("migrate-history", help="show the materialisations of the asset keys from before the stage ids "
-                                           "were unified under the current keys (once; `make dagster` runs it)")
-    args = parser.parse_args(argv)
+                                           "were unified under the current keys (once; make dagster runs it)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     if args.command == "gpu-pool":
         return gpu_pool(args.limit, args.force)
     env = dict(os.environ)

@@ -145,7 +145,7 @@ def test_cli_folder_continues_past_a_bad_file(tmp_path: Path, capsys: pytest.Cap
     (photos / "b.jpg").write_text("this is not a photo")
     (photos / "readme.txt").write_text("ignored: not an image extension")
     out = tmp_path / "refs"
-    assert main(["prepare", str(photos), "--out", str(out)]) == 0
+    assert main(["prepare", str(photos), "--out", str(out)]) == 1  # a failed photo fails the command
     captured = capsys.readouterr()
     rows = {line.split()[0]: line for line in captured.out.splitlines()[1:-1]}
     assert set(rows) == {"a.png", "b.jpg", "c.jpg"}
@@ -154,7 +154,10 @@ def test_cli_folder_continues_past_a_bad_file(tmp_path: Path, capsys: pytest.Cap
     assert captured.out.splitlines()[-1] == "2 ok, 1 failed"
     assert "[3/3] c.jpg" in captured.err  # progress on stderr
     assert sorted(p.name for p in out.iterdir()) == ["a.png", "c.jpg"]  # the store's photo keys
-    assert main(["prepare", str(photos), "--out", str(out), "--strict"]) == 1
-    assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b"), "--strict"]) == 1
-    assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b")]) == 0
+    assert "1 of 3 photo(s) failed: b.jpg" in captured.err
+    assert main(["prepare", str(photos), "--out", str(out), "--strict"]) == 1  # the default, still accepted
+    assert main(["prepare", str(photos), "--out", str(out), "--allow-failures"]) == 0
+    assert "failed (allowed by --allow-failures): b.jpg" in capsys.readouterr().err
+    assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b")]) == 1
+    assert main(["prepare", str(photos / "b.jpg"), "--out", str(tmp_path / "b"), "--allow-failures"]) == 0
     assert not (tmp_path / "b").exists()

@@ -101,6 +101,11 @@ def print_progress(i: int, n: int, outcome: Outcome, stream: TextIO | None = Non
           flush=True)
 
 
+def failed_photos(outcomes: list[Outcome]) -> list[str]:
+    """The file names of the photos that failed, in order (what the exit message names)."""
+    return [str(o.photo.name) for o in outcomes if o.status == "failed"]
+
+
 def format_table(outcomes: list[Outcome]) -> str:
     rows = [("PHOTO", "OUTCOME", "METHOD", "PLAN", "DETAIL")]
     rows += [(o.photo.name, o.status, o.method, o.plan, o.detail) for o in outcomes]
