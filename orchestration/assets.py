@@ -21,10 +21,11 @@ from assets_store.keys import UnsafeKeyError
 from assets_store.photo_hashes import PhotoHashes
 from morpheus_core.priors.proxy.shape import EmptySilhouetteError
 from ops.config.tree import ConfigError
-from ops.engine.loop import ProgressEvent
 from ops.engine.pipeline import MissingUpstreamError, StageOutcome, output_digest
+from ops.engine.progress import HEARTBEAT_S, ProgressEvent
 from ops.engine.stage import Stage
 from ops.intake.errors import PreparationError
+from ops.reporting.progress import format_event
 from ops.stages import STAGES
 from ops.stages.checks import CHECKS, ERROR, QACheck, read_report, stage_checks
 from orchestration.metadata import check_metadata, stage_metadata
@@ -57,11 +58,15 @@ def _checks(outcome: StageOutcome, morpheus: MorpheusResource, key: str) -> list
     return stage_checks(outcome.stage, outcome.manifest.metrics, morpheus.pipeline_config().qa)
 
 
-def _logging_progress(context: AssetExecutionContext, every_s: float = 15.0) -> Callable[[ProgressEvent], None]:
-    """Step progress in the run log, at most every ``every_s`` seconds (and at the end)."""
+def _logging_progress(context: AssetExecutionContext, every_s: float = HEARTBEAT_S) -> Callable[[ProgressEvent], None]:
+    """Step progress in the run log, at most every ``every_s`` seconds (and at the end); a phase
+    without steps (the NeRF → DMTet conversion, QA's renders) at each of its heartbeats."""
     last = [0.0]
 
     def report(event: ProgressEvent) -> None:
+        if event.total <= 0:  # a heartbeat of a long call: its phase may contain ':' itself
+            context.log.info(format_event(event))
+            return
         if event.stage.count(":") == 2:  # "key:stage:status" once a stage is done
             context.log.info(event.stage.replace(":", " · "))
             return

@@ -12,9 +12,9 @@ from assets_store.catalog import Catalog
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops.config.presets import PipelineConfig, preset
-from ops.engine.loop import ProgressFn
 from ops.engine.pipeline import StageOutcome, photo_status, run_stage
 from ops.engine.pipeline_batch import run_stage_batch
+from ops.engine.progress import ProgressFn
 from ops.engine.store_layout import open_store
 from ops.intake import photo_folder
 from ops.reporting.catalog_rows import photo_row

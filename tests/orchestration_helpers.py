@@ -9,7 +9,7 @@ from pathlib import Path
 import dagster as dg
 import pytest
 
-from ops.engine.loop import ProgressEvent
+from ops.engine.progress import ProgressEvent
 from orchestration.definitions import JOB, build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.settings import OrchestrationSettings

@@ -16,9 +16,9 @@ from morpheus_core.frequency import BandMask
 from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
 from ops.cli import main
 from ops.engine import batch as object_batch
-from ops.engine.loop import ProgressEvent
 from ops.engine.pipeline import run_photo
 from ops.engine.pipeline_batch import run_batch
+from ops.engine.progress import ProgressEvent
 from ops.stages import dmtet as dmtet_stage
 from ops.stages import nerf as nerf_stage
 from orchestration.settings import OrchestrationSettings

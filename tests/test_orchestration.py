@@ -93,11 +93,15 @@ def test_all_six_assets_materialise_with_metadata_and_checks(deployment) -> None
 
 
 def test_rerun_is_all_cache_hits(deployment) -> None:
-    _, defs, instance, _ = deployment
+    root, defs, instance, first = deployment
     again = run_job(defs, instance, [KEY])
     assert again.success
     assert {a: m["cache_hit"].value for (a, p), m in materializations(again).items() if p == KEY} == \
         dict.fromkeys(STAGE_IDS, True)
+    # The catalog records the re-run without its predecessor's work (tests/test_report_work.py: the report).
+    rows = {r["run_id"]: r for r in Catalog(Store(root / "store").catalog_dir).read().to_pylist()}
+    assert rows[again.run_id]["status"] == "cached" and rows[again.run_id]["work_s"] == 0 < rows[first.run_id]["work_s"]
+    assert {rows[again.run_id][f"{s}_status"] for s in STAGE_IDS} == {"cached"}
 
 
 def _schedule_requests(defs: dg.Definitions, instance: dg.DagsterInstance) -> dict[str, str]:

@@ -28,10 +28,12 @@ from assets_store.runlog import write_runlog
 from assets_store.store import Store
 from ops.cli import main
 from ops.engine.stage_ids import STAGE_IDS
+from ops.reporting.asset_metrics import HISTOGRAM_MIN_ASSETS
 from ops.reporting.report import SECTIONS
 from ops.reporting.report_sections import worst_order
 from tests.browser import chromium, needs_browser
-from tests.catalog_rows import LOGGED_STAGES, METRICS, synthetic_row
+from tests.catalog_rows import LOGGED_STAGES, synthetic_row
+from tests.test_report_work import totals
 
 T0 = dt.datetime(2026, 5, 4, 9, 0, tzinfo=dt.timezone.utc)
 HOSTILE = "<script>alert('x')</script> & \"quotes\""
@@ -126,15 +128,23 @@ def test_report_in_chromium(report: tuple[Path, list[dict], str], browser) -> No
         "return Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth, i.naturalHeight])")
     assert all(complete and w > 0 and h > 0 for _, complete, w, h in images), images
     alts = [alt for alt, *_ in images]
-    metric_imgs = [a for a in alts if a.startswith("histogram of ")]
-    assert len(metric_imgs) == len(METRICS), "one histogram per metric_* column"
+    # 9 assets (11 photos, photo04's and photo08's only runs failed): below the histograms' threshold, the metrics
+    # are a table with a row per asset and its turntable thumbnail.
+    assert not [a for a in alts if a.startswith("histogram of ")] and HISTOGRAM_MIN_ASSETS > 9
+    assets = browser.find_elements(By.CSS_SELECTOR, "#metrics tr.asset")
+    assert [a.get_attribute("data-photo-key") for a in assets] == [f"photo{i:02d}" for i in range(11)
+                                                                    if i not in (4, 8)]
+    thumbs = browser.find_elements(By.CSS_SELECTOR, "#metrics img.thumb")
+    assert len(thumbs) == 8 and all(t.get_property("naturalHeight") == 48 for t in thumbs)  # photo02's is missing
+    assert "preview unreadable" in assets[2].text
     assert "reference PSNR against wall time" in alts
     previews = browser.find_elements(By.CSS_SELECTOR, "#worst img.preview")
     assert previews and all(p.get_property("naturalWidth") == 8 * 48 for p in previews)
 
     summary = browser.find_element(By.ID, "summary").text
     assert "failed 2" in summary and "ok 10" in summary
-    assert re.search(r"photos 11\b", summary) and re.search(r"runs 12\b", summary)
+    assert re.search(r"photos 11\b", summary) and re.search(r"runs that did work 12\b", summary)
+    assert re.search(r"runs that found everything cached 0\b", summary)
     for stage in STAGE_IDS:
         assert stage in summary
 
@@ -254,3 +264,14 @@ def test_qa_on_a_bundled_photo_then_the_report_in_chromium(tmp_path: Path, brows
     assert images and all(w > 0 for _, w in images), images
     assert "reference PSNR against wall time" in [alt for alt, _ in images]
     assert "mug.jpg" in browser.find_element(By.ID, "worst").text
+
+    # Again, everything cached: a second row says so, and the report's totals are the first run's.
+    first = totals(out.read_text(encoding="utf-8"))
+    assert main(["run", str(PHOTOS / "mug.jpg"), "--out", str(store), "--preset", "draft",
+                 *cli_overrides(tiny_config())]) in (0, 1)
+    again = [r for r in Catalog(Store(store).catalog_dir).read().to_pylist() if r["run_id"] != rows[0]["run_id"]]
+    assert len(again) == 1 and again[0]["status"] == "cached" and again[0]["work_s"] == 0
+    assert all(again[0][f"{s}_wall_s"] == 0 for s in STAGE_IDS) and rows[0]["work_s"] > 0
+    assert main(["report", "--store", str(store), "--out", str(out)]) == 0
+    page = out.read_text(encoding="utf-8")
+    assert totals(page) == first and "<td>runs that found everything cached</td><td>1</td>" in page

@@ -30,7 +30,8 @@ from torch import Tensor
 from morpheus_core.guidance import PriorBinding, hybrid_guidance
 from morpheus_core.priors.proxy.prior import CurrentRenderCounterpart, ProxyPrior
 from ops.engine.guided_task import GuidedTask, RenderedStep, step_output
-from ops.engine.loop import BadStep, LoopConfig, LoopResult, ProgressFn, StepOutput, run_loop
+from ops.engine.loop import BadStep, LoopConfig, LoopResult, StepOutput, run_loop
+from ops.engine.progress import ProgressFn
 from ops.engine.stage_job import StageJob, StageResult, loop_notes
 
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from assets_store.checkpoints import Checkpoints
 from morpheus_core.device_skip import nonfinite, step_or_skip
+from ops.engine.progress import Heartbeat, ProgressEvent, ProgressFn
 
 _AUTOCAST: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 
@@ -131,18 +132,6 @@ class StageTask(Protocol):
 
     def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig) -> bool:
         """Whether the loop may end after step ``done`` (``ops.engine.early_stop``); asked at log rows only."""
-
-
-@dataclass(frozen=True)
-class ProgressEvent:
-    stage: str
-    step: int
-    total: int
-    elapsed_s: float
-    metrics: dict[str, float]
-
-
-ProgressFn = Callable[[ProgressEvent], None]
 
 
 @dataclass
@@ -257,8 +246,13 @@ def _finite_or_none(x: float) -> float | None:
 
 
 def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, stage: str,
-             checkpoint_dir: Path | None = None, progress: ProgressFn | None = None) -> LoopResult:
-    """Run ``config.steps`` steps of ``task``, resuming from ``checkpoint_dir`` when it holds one."""
+             checkpoint_dir: Path | None = None, progress: ProgressFn | None = None,
+             heartbeat_s: float | None = None) -> LoopResult:
+    """Run ``config.steps`` steps of ``task``, resuming from ``checkpoint_dir`` when it holds one.
+
+    ``progress`` hears of every log row and, between them, every ``heartbeat_s`` seconds (None:
+    ``HEARTBEAT_S``) of the step reached (``ops.engine.progress.Heartbeat``): slow steps or a large ``log_every`` never
+    leave the console silent."""
     # Gradients of the small prior terms decay into float32's subnormal range, where x86 CPUs run
     # 10–20× slower (measured: 0.22 → 4 s per draft NeRF step); flushing them to zero changes no
     # result that matters (they are below 1.2e-38).
@@ -285,6 +279,8 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
         value, good_steps = float(state["loss_scale"][0]), int(state["loss_scale"][1])
     scale = _LossScale(value, good_steps, half, config.fp16_growth_interval, device)
     good = _clone(task.state())
+    beat = Heartbeat(progress, stage, config.steps, every_s=heartbeat_s, elapsed_before=wall_before)
+    beat.step = start
     t0 = time.perf_counter()
     stopped_at: int | None = None
 
@@ -304,35 +300,37 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
         task.load_state(_clone(good))
         guards.reset_run()
 
-    for step in range(start, config.steps):
-        _zero_grad(task)
-        ok, terms = _guarded_step(task, step, generator, config, guards, scale)
-        task.after_step(ok)
-        done = step + 1
-        log_row = step % config.log_every == 0 or done == config.steps
-        save = ckpts is not None and done % config.checkpoint_every == 0 and done < config.steps
-        if log_row or save:
-            check()
-        if log_row:
-            row: dict[str, Any] = {"step": done, "wall_s": round(elapsed(), 4), "ok": bool(ok)}
-            row.update({k: _finite_or_none(float(v)) for k, v in terms.items()})
-            row.update({k: _finite_or_none(v) for k, v in task.evaluate().items()})
-            history.append(row)
-            if progress is not None:
-                progress(ProgressEvent(stage, done, config.steps, elapsed(), {
-                    k: v for k, v in row.items() if isinstance(v, float) and k != "wall_s"}))
-            if config.early_stop and done < config.steps and task.stop_early(history, done, config):
-                stopped_at = done
-                break
-        if save:
-            state = task.state()
-            ckpts.save(done, {  # type: ignore[union-attr]
-                "task": state,
-                "rng": {"generator": generator.get_state(), "torch": torch.get_rng_state()},
-                "history": history, "guards": vars(counters).copy(), "wall_s": elapsed(),
-                "loss_scale": [float(scale.value), int(scale.good)],
-            })
-            good = _clone(state)
+    with beat:
+        for step in range(start, config.steps):
+            _zero_grad(task)
+            ok, terms = _guarded_step(task, step, generator, config, guards, scale)
+            task.after_step(ok)
+            done = step + 1
+            beat.step = done
+            log_row = step % config.log_every == 0 or done == config.steps
+            save = ckpts is not None and done % config.checkpoint_every == 0 and done < config.steps
+            if log_row or save:
+                check()
+            if log_row:
+                row: dict[str, Any] = {"step": done, "wall_s": round(elapsed(), 4), "ok": bool(ok)}
+                row.update({k: _finite_or_none(float(v)) for k, v in terms.items()})
+                row.update({k: _finite_or_none(v) for k, v in task.evaluate().items()})
+                history.append(row)
+                if progress is not None:
+                    beat(ProgressEvent(stage, done, config.steps, elapsed(), {
+                        k: v for k, v in row.items() if isinstance(v, float) and k != "wall_s"}))
+                if config.early_stop and done < config.steps and task.stop_early(history, done, config):
+                    stopped_at = done
+                    break
+            if save:
+                state = task.state()
+                ckpts.save(done, {  # type: ignore[union-attr]
+                    "task": state,
+                    "rng": {"generator": generator.get_state(), "torch": torch.get_rng_state()},
+                    "history": history, "guards": vars(counters).copy(), "wall_s": elapsed(),
+                    "loss_scale": [float(scale.value), int(scale.good)],
+                })
+                good = _clone(state)
     end = config.steps if stopped_at is None else stopped_at
     return LoopResult(history, counters, resumed_from, max(0, end - start), elapsed(), config.steps, stopped_at)
 

@@ -29,8 +29,8 @@ from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
 from ops.engine.early_stop import whole_schedule_record
 from ops.engine.gpu_lease import GpuLease, leased_device, memory_hint
-from ops.engine.loop import ProgressEvent, ProgressFn
 from ops.engine.priors import WEIGHT_FREE, PriorSuite
+from ops.engine.progress import ProgressEvent, ProgressFn
 from ops.engine.stage import StageWork
 from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
@@ -255,7 +255,7 @@ class PhotoRun:
         if result.metrics.get("skipped"):
             status = "skipped"
         self.outcome.stages.append(StageOutcome(stage, status, wall, manifest))
-        self._report(stage, status)
+        self._report(stage, status, wall)
         self.done[stage] = manifest
         return manifest
 
@@ -288,9 +288,10 @@ class PhotoRun:
             upstream_ok = upstream_ok and fresh
         return out
 
-    def _report(self, stage: str, status: str) -> None:
+    def _report(self, stage: str, status: str, wall_s: float = 0.0) -> None:
+        """The stage's outcome, with the seconds it took (0 for a cached one)."""
         if self.reporter is not None:
-            self.reporter(ProgressEvent(f"{self.key}:{stage}:{status}", 1, 1, 0.0, {}))
+            self.reporter(ProgressEvent(f"{self.key}:{stage}:{status}", 1, 1, wall_s, {}))
 
 
 def check_stage_id(stage: str, what: str = "stage") -> str:

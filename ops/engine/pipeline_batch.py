@@ -17,7 +17,6 @@ from assets_store.store import StageWriter, Store
 from ops.config.presets import PipelineConfig
 from ops.engine.batch import run_jobs
 from ops.engine.gpu_lease import leased_device
-from ops.engine.loop import ProgressEvent, ProgressFn
 from ops.engine.pipeline import (
     PhotoOutcome,
     PhotoRun,
@@ -28,6 +27,7 @@ from ops.engine.pipeline import (
     stage_device,
 )
 from ops.engine.priors import PriorSuite
+from ops.engine.progress import ProgressEvent, ProgressFn
 from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageJob
 

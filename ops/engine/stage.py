@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from ops.engine.loop import ProgressFn
+from ops.engine.progress import ProgressFn
 from ops.engine.stage_job import StageJob, StageResult
 
 if TYPE_CHECKING:

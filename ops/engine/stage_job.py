@@ -10,7 +10,8 @@ from typing import Any
 import torch
 
 from ops.engine.guided_task import GuidedTask
-from ops.engine.loop import LoopConfig, LoopResult, ProgressFn, run_loop
+from ops.engine.loop import LoopConfig, LoopResult, run_loop
+from ops.engine.progress import ProgressFn
 
 
 @dataclass

@@ -1,9 +1,17 @@
 """One catalog row per photo per run, built from the store's manifests and the QA report.
 
 The row convention (``assets_store.catalog``): keys and hashes, preset, plan decisions, per stage
-``<stage>_wall_s`` / ``<stage>_device`` / ``<stage>_status``, every QA metric as ``metric_<name>``,
-every check as ``check_<stage>_<name>`` (pass / warn / fail), the verdict and its reasons, where
-the GLB, the preview and each stage's run log are, and why the run failed when it did.
+``<stage>_wall_s`` / ``<stage>_device`` / ``<stage>_status`` / ``<stage>_built_at``, every QA metric as
+``metric_<name>``, every check as ``check_<stage>_<name>`` (pass / warn / fail), the verdict and its reasons,
+where the GLB, the preview and each stage's run log are, and why the run failed when it did.
+
+A row counts the work its run did, once: ``<stage>_wall_s`` is the time this run spent making the stage's
+output, 0 when the run found the output cached (``<stage>_status`` ``cached``), and ``work_s`` their sum. A
+run that found every stage cached still gets its row (the run happened), with ``status`` ``cached`` and
+``work_s`` 0. ``<stage>_built_at`` (the output's manifest time) names the output, so a reader can tell
+whether two rows describe the same piece of work. When the caller does not say what a stage did (the Dagster
+QA step knows only its own stage), the photo's earlier rows decide: an output one of them already reported is
+cached here; rows from before ``<stage>_built_at`` are matched by their wall time, which they copied.
 """
 
 from __future__ import annotations
@@ -13,15 +21,22 @@ import uuid
 from datetime import datetime, timezone
 from typing import Any
 
+import numpy as np
+import pyarrow.compute as pc
+
 from assets_store.catalog import Catalog
 from assets_store.manifest import Manifest
 from assets_store.store import Store
 from ops.engine.artifacts import RUNLOG_FILE
 from ops.engine.pipeline import PhotoOutcome
-from ops.engine.stage_ids import STAGE_IDS
+from ops.engine.stage_ids import RENAMED_STAGES, STAGE_IDS
+from ops.reporting.stage_columns import NOT_WORK, current_stage_columns
 from ops.stages.bake import ASSET_GLB
 from ops.stages.checks import QA_FILE, read_report
 from ops.stages.qa import QA_TURNTABLE_FILE
+
+CACHED = "cached"
+UNSAID = "present"  # the output is there and no earlier row reported it; the caller did not say which run made it
 
 
 def _number(value: Any) -> Any:
@@ -32,10 +47,53 @@ def _number(value: Any) -> Any:
     return None
 
 
+def built_at(manifest: Manifest) -> datetime | None:
+    """When the output was made (its manifest's time, UTC); None for a manifest whose time does not parse."""
+    try:
+        made = datetime.fromisoformat(manifest.created_at)
+    except (TypeError, ValueError):
+        return None
+    return made.astimezone(timezone.utc) if made.tzinfo is not None else None
+
+
+def reported_outputs(catalog: Catalog, key: str, manifests: dict[str, Manifest]) -> set[str]:
+    """The stages of ``manifests`` whose output an earlier row of photo ``key`` already reported: the same
+    ``<stage>_built_at``, or, in a row from before that column, the same ``<stage>_wall_s``."""
+    times = {stage: built_at(m) for stage, m in manifests.items()}
+    known = [t for t in times.values() if t is not None]
+    # A row reporting an output was written after the output was made: older days need not be opened.
+    since = min(known) if len(known) == len(times) and known else None
+    old_ids = {new: old for old, new in RENAMED_STAGES.items()}
+    columns = ["photo_key"]
+    for stage in manifests:
+        columns += [f"{stage}_built_at", f"{stage}_wall_s"]
+        if stage in old_ids:
+            columns.append(f"{old_ids[stage]}_wall_s")
+    table = catalog.read(since, columns)
+    if table.num_rows == 0:
+        return set()
+    table = current_stage_columns(table.filter(pc.fill_null(pc.equal(table["photo_key"], key), False)))
+    found = set()
+    for stage, m in manifests.items():
+        made = times[stage]
+        at = table[f"{stage}_built_at"].to_pylist() if f"{stage}_built_at" in table.column_names else []
+        if made is not None and made in at:
+            found.add(stage)
+            continue
+        if f"{stage}_wall_s" not in table.column_names or table[f"{stage}_wall_s"].null_count == table.num_rows:
+            continue
+        walls = np.asarray(pc.fill_null(table[f"{stage}_wall_s"].cast("float64"), np.nan))
+        undated = np.array([a is None for a in at]) if at else np.ones(len(walls), dtype=bool)
+        if np.any(undated & (walls == float(m.wall_time_s))):
+            found.add(stage)
+    return found
+
+
 def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, str] | None = None,
               failure: str | None = None, photo_sha256: str | None = None) -> dict[str, Any]:
     """The row for ``key`` as the store holds it now. ``status_by_stage``: what this run did per
-    stage (ran / resumed / cached / skipped / failed); ``failure``: why the run failed."""
+    stage (ran / resumed / cached / skipped / failed); ``failure``: why the run failed. A stage
+    not named is looked up in the photo's earlier rows (see the module docstring)."""
     manifests: dict[str, Manifest] = {}
     for stage in STAGE_IDS:
         m = store.read_manifest(key, stage)
@@ -53,15 +111,31 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
     plan = next((m.plan for m in manifests.values() if m.plan), {})
     row.update({"plan_refine": plan.get("refine"), "plan_grid": plan.get("grid"),
                 "plan_export_faces": plan.get("export_faces")})
-    statuses = status_by_stage or {}
+    statuses = dict(status_by_stage or {})
+    unsaid = {stage: m for stage, m in manifests.items() if stage not in statuses}
+    if unsaid:
+        seen = reported_outputs(Catalog(store.catalog_dir), key, unsaid)
+        statuses.update({stage: CACHED if stage in seen else UNSAID for stage in unsaid})
+    work = 0.0
     for stage in STAGE_IDS:
         m = manifests.get(stage)
-        row[f"{stage}_wall_s"] = float(m.wall_time_s) if m else None
+        status = statuses.get(stage, "missing" if m is None else UNSAID)
+        wall = None
+        if m is not None and status not in NOT_WORK:
+            wall = float(m.wall_time_s)
+            work += wall
+        elif m is not None and status == CACHED:
+            wall = 0.0  # found made: the time it took belongs to the row of the run that made it
+        row[f"{stage}_wall_s"] = wall
         row[f"{stage}_device"] = m.device if m else None
-        row[f"{stage}_status"] = statuses.get(stage, "present" if m else "missing")
+        row[f"{stage}_status"] = status
+        row[f"{stage}_built_at"] = built_at(m) if m else None
         log = store.stage_dir(key, stage) / RUNLOG_FILE
         if m is not None and RUNLOG_FILE in m.outputs:
             row[f"runlog_{stage}"] = str(log)
+    row["work_s"] = round(work, 3)
+    if not failure and manifests and all(statuses.get(s) in NOT_WORK for s in manifests):
+        row["status"] = CACHED  # the run happened and did nothing: it found every output made
     qa_dir = store.stage_dir(key, "qa")
     if "qa" in manifests and (qa_dir / QA_FILE).is_file():
         report = read_report(qa_dir)

@@ -1,9 +1,13 @@
 """The catalog report: one self-contained HTML page over the run catalog (``morpheus3d report``).
 
 Sections (each a ``<section id=...>`` with an ``<h2>``): ``summary`` (counts by status and verdict, photos,
-time span, wall time per stage), ``metrics`` (a histogram per numeric ``metric_*`` column), ``curves``
+runs, time span, wall time per stage), ``metrics`` (a table with a row per asset and its turntable thumbnail;
+from ``HISTOGRAM_MIN_ASSETS`` assets up also a histogram per numeric ``metric_*`` column), ``curves``
 (reference PSNR against wall time from the rows' ``runlog_<stage>`` files), ``worst`` (the worst assets with
 their previews) and ``failures`` (failed rows with their reasons).
+
+Each piece of work counts once (``ops.reporting.stage_columns.count_work_once``): a cached re-run's rows are
+counted as runs that found everything cached, add no wall time, and each asset is one row of the metrics.
 
 Everything is inline: figures and previews are base64 PNG data URIs, the CSS is a ``<style>`` element, there
 is no script, so the page can be mailed or archived and opens without a network. Every text taken from the
@@ -23,18 +27,18 @@ from pathlib import Path
 
 from assets_store.atomic import atomic_write_text
 from assets_store.catalog import Catalog, latest_rows
+from ops.reporting.asset_metrics import asset_rows, metrics_section
 from ops.reporting.html import esc
 from ops.reporting.report_sections import (
     ReportOptions,
     curves_section,
     failures_section,
-    metrics_section,
     summary_section,
     worst_section,
 )
-from ops.reporting.stage_columns import current_stage_columns
+from ops.reporting.stage_columns import count_work_once, current_stage_columns
 
-SECTIONS = (("summary", "Summary"), ("metrics", "Metric distributions"), ("curves", "Error against run time"),
+SECTIONS = (("summary", "Summary"), ("metrics", "Metrics per asset"), ("curves", "Error against run time"),
             ("worst", "Worst assets"), ("failures", "Failures"))
 
 
@@ -63,6 +67,7 @@ dl{display:grid;grid-template-columns:max-content auto;gap:.1em 1em;font-size:.9
 dt{color:#555}
 dd{margin:0;word-break:break-all}
 table.failures td:nth-child(6){color:#a00}
+table.assets img.thumb{display:block}
 """
 
 
@@ -78,7 +83,7 @@ def build_report(
     options = options or ReportOptions()
     base = Path(base_dir) if base_dir is not None else catalog.root.parent
     scanned = catalog.scan(since)
-    read = replace(scanned, table=current_stage_columns(scanned.table))
+    read = replace(scanned, table=count_work_once(current_stage_columns(scanned.table)))
     table = read.table
     latest = latest_rows(table) if table.num_rows and "photo_key" in table.column_names else table.slice(0, 0)
     bodies = {"summary": summary_section(read, catalog.root, since)}
@@ -86,7 +91,7 @@ def build_report(
         for sid, _ in SECTIONS[1:]:
             bodies[sid] = '<p class="empty">The catalog is empty.</p>'
     else:
-        bodies["metrics"] = metrics_section(table)
+        bodies["metrics"] = metrics_section(asset_rows(table), base, options)
         bodies["curves"] = curves_section(latest, base, options)
         bodies["worst"] = worst_section(latest, base, options)
         bodies["failures"] = failures_section(table, options)

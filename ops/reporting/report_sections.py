@@ -1,14 +1,15 @@
-"""The catalog report's sections (``ops.reporting.report`` assembles the page): ``summary``, ``metrics``,
-``curves``, ``worst`` and ``failures``, each a function returning its HTML; the options they take
-(``ReportOptions``) and the helpers reading the catalog table's columns and the rows' paths."""
+"""The catalog report's sections (``ops.reporting.report`` assembles the page): ``summary``, ``curves``,
+``worst`` and ``failures``, each a function returning its HTML (``metrics`` is in ``ops.reporting.asset_metrics``);
+the options they take (``ReportOptions``) and the helper resolving the rows' paths.
+
+The sections read the catalog table after ``ops.reporting.stage_columns.count_work_once``: wall times are
+summed from ``<stage>_work_s`` (each piece of work once, cached re-runs none), curves are shifted by
+``<stage>_build_s`` (the time the output took to make, whichever run made it)."""
 
 from __future__ import annotations
 
 import datetime as dt
-import io
 import math
-import re
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,13 +21,12 @@ import pyarrow.parquet as pq
 from matplotlib.figure import Figure
 
 from assets_store.catalog import CatalogRead
-from ops.engine.stage_ids import STAGE_IDS
-from ops.reporting.html import _figure_png, _fmt, _fmt_s, _img, _table, esc
+from ops.reporting.html import esc, figure_png, fmt, fmt_s, html_table, img, preview_png
+from ops.reporting.stage_columns import BUILD_SUFFIX, WORK_SUFFIX, float_column, string_column, wall_stages
 
 KEY_METRICS = ("metric_ref_psnr", "metric_ssim_in", "metric_mask_iou", "metric_lpips", "metric_colour_deviation",
                "metric_hf_ratio")
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_WALL = re.compile(r"(?P<stage>.+)_wall_s")
+HISTOGRAM_MIN_ASSETS = 20  # fewer assets: the metrics section is the per-asset table only (few values: no shape)
 
 
 @dataclass(frozen=True)
@@ -36,39 +36,21 @@ class ReportOptions:
     median_n: int = 200  # photos whose run logs make up the median curve (read: ~1 ms each)
     max_failures: int = 500  # rows in the failures table (the rest counted)
     preview_max_width: int = 1200  # wider previews are scaled down so the page stays mailable
+    histogram_min_assets: int = HISTOGRAM_MIN_ASSETS  # assets from which the metrics section draws histograms
+    asset_table_max: int = 200  # rows of the per-asset table (the rest counted; the histograms cover them)
+    thumbnail_height: int = 64  # the per-asset table's turntable strips, scaled to this height …
+    thumbnail_max_width: int = 512  # … and at most this width
 
 
 # ---------------------------------------------------------------------------------------------- helpers
 
 
-def _floats(table: pa.Table, name: str) -> np.ndarray:
-    """A column as float64 with NaN for null (and for a missing column)."""
-    if name not in table.column_names:
-        return np.full(table.num_rows, np.nan)
-    column = table[name]
-    if pa.types.is_null(column.type):
-        return np.full(table.num_rows, np.nan)
-    return pc.cast(column, pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64)
-
-
-def _strings(table: pa.Table, name: str) -> list[str | None]:
-    if name not in table.column_names:
-        return [None] * table.num_rows
-    return [None if v is None else str(v) for v in table[name].to_pylist()]
-
-
-def _resolve(path: str | None, base: Path) -> Path | None:
+def resolve_path(path: str | None, base: Path) -> Path | None:
+    """A path from a row, relative ones taken from ``base`` (the store root)."""
     if not path:
         return None
     p = Path(path)
     return p if p.is_absolute() else base / p
-
-
-def _stages(columns: Sequence[str]) -> list[str]:
-    found = {m.group("stage") for c in columns if (m := _WALL.fullmatch(c))}
-    found |= {c.removeprefix("runlog_") for c in columns if c.startswith("runlog_")}
-    known = [s for s in STAGE_IDS if s in found]
-    return known + sorted(found - set(STAGE_IDS))
 
 
 def _counts(values: list[str | None]) -> list[tuple[str, int]]:
@@ -99,79 +81,43 @@ def summary_section(read: CatalogRead, catalog_root: Path, since: Any) -> str:
         else []
     span = f"{min(created).isoformat(timespec='seconds')} to {max(created).isoformat(timespec='seconds')}" \
         if created else "-"
-    photos = len({p for p in _strings(table, "photo_key") if p is not None})
-    runs = len({r for r in _strings(table, "run_id") if r is not None})
-    facts = [("rows (a photo in a run)", n), ("photos", photos), ("runs", runs), ("time span (UTC)", span)]
-    parts.append(_table(["", ""], facts, "facts"))
-    status = _counts(_strings(table, "status"))
-    verdict = _counts(_strings(table, "verdict"))
-    parts.append('<div class="row">' + _table(["status", "rows"], status, "counts status")
-                 + _table(["verdict", "rows"], verdict, "counts verdict") + "</div>")
+    photos = len({p for p in string_column(table, "photo_key") if p is not None})
+    statuses = string_column(table, "status")
+    runs: dict[str, bool] = {}  # run id -> whether it did work (a row not "cached")
+    for run, status in zip(string_column(table, "run_id"), statuses, strict=True):
+        if run is not None:
+            runs[run] = runs.get(run, False) or status != "cached"
+    worked = sum(runs.values())
+    facts = [("rows (a photo in a run)", n), ("photos", photos), ("runs that did work", worked),
+             ("runs that found everything cached", len(runs) - worked), ("time span (UTC)", span)]
+    parts.append(html_table(["", ""], facts, "facts"))
+    parts.append('<div class="row">' + html_table(["status", "rows"], _counts(statuses), "counts status")
+                 + html_table(["verdict", "rows"], _counts(string_column(table, "verdict")), "counts verdict")
+                 + "</div>")
 
-    stages = [s for s in _stages(table.column_names) if f"{s}_wall_s" in table.column_names]
+    stages = [s for s in wall_stages(table.column_names) if f"{s}{WORK_SUFFIX}" in table.column_names]
     rows = []
-    per_run = np.zeros(n)
+    per_row = np.zeros(n)
+    worked_rows = np.zeros(n, dtype=bool)
     for stage in stages:
-        wall = _floats(table, f"{stage}_wall_s")
-        ok = wall[np.isfinite(wall)]
-        per_run += np.nan_to_num(wall, nan=0.0, posinf=0.0, neginf=0.0)
+        work = float_column(table, f"{stage}{WORK_SUFFIX}")  # null where cached or counted by an earlier row
+        ok = work[np.isfinite(work)]
+        per_row += np.nan_to_num(work, nan=0.0, posinf=0.0, neginf=0.0)
+        worked_rows |= np.isfinite(work)
         if ok.size:
-            rows.append((stage, ok.size, _fmt_s(ok.sum()), _fmt_s(ok.mean()), _fmt_s(float(np.median(ok))),
-                         _fmt_s(float(np.percentile(ok, 95)))))
+            rows.append((stage, ok.size, fmt_s(ok.sum()), fmt_s(ok.mean()), fmt_s(float(np.median(ok))),
+                         fmt_s(float(np.percentile(ok, 95)))))
         else:
             rows.append((stage, 0, "-", "-", "-", "-"))
     if stages:
-        rows.append(("all stages (per row)", n, _fmt_s(per_run.sum()), _fmt_s(per_run.mean()),
-                     _fmt_s(float(np.median(per_run))), _fmt_s(float(np.percentile(per_run, 95)))))
-        parts.append("<h3>Wall time per stage</h3>")
-        parts.append(_table(["stage", "rows", "total", "mean", "median", "p95"], rows, "walltime"))
+        done = per_row[worked_rows]
+        rows.append(("all stages (per row with work)", done.size, *(
+            (fmt_s(done.sum()), fmt_s(done.mean()), fmt_s(float(np.median(done))),
+             fmt_s(float(np.percentile(done, 95)))) if done.size else ("-", "-", "-", "-"))))
+        parts.append("<h3>Wall time per stage</h3><p>Each piece of work once: a stage's output counts in the run "
+                     "that made it; a run that found it cached adds nothing.</p>")
+        parts.append(html_table(["stage", "builds", "total", "mean", "median", "p95"], rows, "walltime"))
     return "".join(parts)
-
-
-def _numeric_metrics(table: pa.Table) -> list[str]:
-    out = []
-    for name in table.column_names:
-        t = table.schema.field(name).type
-        if name.startswith("metric_") and (pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_boolean(t)):
-            out.append(name)
-    return out
-
-
-def metrics_section(table: pa.Table) -> str:
-    names = _numeric_metrics(table)
-    if not names:
-        return '<p class="empty">No numeric metric_* columns.</p>'
-    cards = []
-    for name in names:
-        values = _floats(table, name)
-        finite = values[np.isfinite(values)]
-        nulls = int(np.isnan(values).sum()) if values.size else 0
-        odd = int(values.size - finite.size - nulls)  # ±inf (NaN counts with the nulls: a metric not computed)
-        caption = f"{finite.size} values"
-        if nulls:
-            caption += f", {nulls} null/NaN"
-        if odd:
-            caption += f", {odd} infinite (not drawn)"
-        if finite.size == 0:
-            cards.append(f'<figure class="metric"><figcaption><b>{esc(name)}</b>: no finite values '
-                         f"({esc(caption)})</figcaption></figure>")
-            continue
-        fig = Figure(figsize=(3.4, 2.3))
-        ax = fig.add_subplot()
-        if pa.types.is_boolean(table.schema.field(name).type):
-            trues = int(finite.sum())
-            ax.bar(["false", "true"], [finite.size - trues, trues], color=["#c55", "#5a5"])
-        else:
-            bins = min(30, max(5, int(np.sqrt(finite.size))))
-            ax.hist(finite, bins=bins, color="#4a78b0")
-            ax.axvline(float(np.median(finite)), color="k", lw=1, ls="--")
-            caption += f", median {_fmt(float(np.median(finite)), 4)}"
-        ax.set_title(name, fontsize=9)
-        ax.tick_params(labelsize=7)
-        fig.tight_layout()
-        cards.append(f'<figure class="metric">{_img(_figure_png(fig), f"histogram of {name}")}'
-                     f"<figcaption>{esc(caption)}</figcaption></figure>")
-    return '<div class="grid">' + "".join(cards) + "</div>"
 
 
 def _runlog_points(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
@@ -181,8 +127,8 @@ def _runlog_points(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
         if "wall_s" not in names:
             raise ValueError("no wall_s column")
         table = pf.read(columns=[c for c in ("wall_s", "ref_psnr") if c in names], use_threads=False)
-    wall = _floats(table, "wall_s")
-    psnr = _floats(table, "ref_psnr")
+    wall = float_column(table, "wall_s")
+    psnr = float_column(table, "ref_psnr")
     end = float(np.nanmax(wall)) if np.isfinite(wall).any() else 0.0
     keep = np.isfinite(wall) & np.isfinite(psnr)
     order = np.argsort(wall[keep], kind="stable")
@@ -194,7 +140,7 @@ Segment = tuple[np.ndarray, np.ndarray]  # (wall time since the run started, ref
 
 def _curve(row: dict[str, Any], stages: list[str], base: Path, problems: list[str]) -> list[Segment]:
     """A photo's reference PSNR against wall time since the run started, one segment per stage's log, each
-    shifted by the wall time of the stages before it (the row's ``<stage>_wall_s``, else the log's last time).
+    shifted by the wall time of the stages before it (the row's ``<stage>_build_s``, else the log's last time).
 
     Segments stay apart: each stage measures a different representation (field, mesh, texture), so a line
     from one stage's last value to the next one's first would draw a trend that was never measured.
@@ -203,7 +149,7 @@ def _curve(row: dict[str, Any], stages: list[str], base: Path, problems: list[st
     offset = 0.0
     for stage in stages:
         end = 0.0
-        path = _resolve(row.get(f"runlog_{stage}"), base)
+        path = resolve_path(row.get(f"runlog_{stage}"), base)
         if path is not None:
             try:
                 t, v, end = _runlog_points(path)
@@ -213,7 +159,7 @@ def _curve(row: dict[str, Any], stages: list[str], base: Path, problems: list[st
                 problems.append(f"{row.get('photo_key')}: {stage} log missing ({path})")
             except Exception as exc:  # a bad log costs its curve segment, never the report
                 problems.append(f"{row.get('photo_key')}: {stage} log unreadable ({path}: {exc})")
-        wall = row.get(f"{stage}_wall_s")
+        wall = row.get(f"{stage}{BUILD_SUFFIX}", row.get(f"{stage}_wall_s"))
         offset += float(wall) if isinstance(wall, (int, float)) and math.isfinite(wall) else end
     return segments
 
@@ -236,7 +182,7 @@ def _spread(items: list[Any], k: int) -> list[Any]:
 
 
 def curves_section(latest: pa.Table, base: Path, options: ReportOptions) -> str:
-    stages = _stages(latest.column_names)
+    stages = wall_stages(latest.column_names)
     log_cols = [f"runlog_{s}" for s in stages if f"runlog_{s}" in latest.column_names]
     if not log_cols or latest.num_rows == 0:
         return '<p class="empty">No rows name run logs (runlog_&lt;stage&gt; columns).</p>'
@@ -284,7 +230,7 @@ def curves_section(latest: pa.Table, base: Path, options: ReportOptions) -> str:
     caption = (f"{shown} photos drawn (thin lines, spread over the catalog's photos by key), the median over "
                f"{len(curves)} photos with readable logs (thick, where at least half of them have a value). Each "
                "stage's log is shifted by the wall time of the stages before it; lines break between stages.")
-    out = f'<figure class="curves">{_img(_figure_png(fig), "reference PSNR against wall time")}' \
+    out = f'<figure class="curves">{img(figure_png(fig), "reference PSNR against wall time")}' \
           f"<figcaption>{esc(caption)}</figcaption></figure>"
     if problems:
         items = "".join(f"<li>{esc(p)}</li>" for p in problems[:20])
@@ -305,31 +251,6 @@ def worst_order(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return sorted(rows, key=key)
 
 
-def _preview(path: Path | None, max_width: int) -> tuple[bytes | None, str]:
-    """The preview PNG's bytes (scaled down when wide), or None and why not."""
-    if path is None:
-        return None, "no preview path in the row"
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        return None, f"preview unreadable: {exc.strerror or exc} ({path})"
-    if not data.startswith(PNG_SIGNATURE):
-        return None, f"preview is not a PNG ({path})"
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(data)) as im:
-            im.load()  # decode fully here: a truncated PNG must not become a broken image in the page
-            if im.width > max_width:
-                scaled = im.resize((max_width, max(1, round(im.height * max_width / im.width))))
-                buf = io.BytesIO()
-                scaled.save(buf, format="PNG", optimize=True)
-                data = buf.getvalue()
-    except Exception as exc:
-        return None, f"preview does not decode: {exc} ({path})"
-    return data, ""
-
-
 def worst_section(latest: pa.Table, base: Path, options: ReportOptions) -> str:
     if latest.num_rows == 0:
         return '<p class="empty">No rows.</p>'
@@ -342,12 +263,12 @@ def worst_section(latest: pa.Table, base: Path, options: ReportOptions) -> str:
     metrics = [m for m in KEY_METRICS if m in latest.column_names]
     items = []
     for rank, row in enumerate(worst, 1):
-        data, why = _preview(_resolve(row.get("preview_path"), base), options.preview_max_width)
-        image = _img(data, f"preview of {row.get('photo_key')}", "preview") if data else \
+        data, why = preview_png(resolve_path(row.get("preview_path"), base), options.preview_max_width)
+        image = img(data, f"preview of {row.get('photo_key')}", "preview") if data else \
             f'<p class="nopreview">{esc(why)}</p>'
         psnr = row.get("metric_ref_psnr")
         psnr_attr = f"{psnr:.6g}" if isinstance(psnr, (int, float)) and math.isfinite(psnr) else ""
-        numbers = "".join(f"<dt>{esc(m.removeprefix('metric_'))}</dt><dd>{esc(_fmt(row.get(m), 4))}</dd>"
+        numbers = "".join(f"<dt>{esc(m.removeprefix('metric_'))}</dt><dd>{esc(fmt(row.get(m), 4))}</dd>"
                           for m in metrics)
         checks = [f"{c.removeprefix('check_')}={v}" for c, v in row.items() if c.startswith("check_") and
                   v in ("fail", "warn")]
@@ -373,7 +294,7 @@ def failures_section(table: pa.Table, options: ReportOptions) -> str:
         return '<p class="empty">No failed rows.</p>'
     oldest = dt.datetime.min.replace(tzinfo=dt.timezone.utc)
     rows = sorted(failed.to_pylist(), key=lambda r: r.get("created_at") or oldest, reverse=True)  # newest first
-    stages = _stages(table.column_names)
+    stages = wall_stages(table.column_names)
     out_rows = []
     for row in rows[: options.max_failures]:
         stage = next((s for s in stages if row.get(f"{s}_status") == "failed"), "-")
@@ -384,5 +305,5 @@ def failures_section(table: pa.Table, options: ReportOptions) -> str:
     more = f"<p>… and {len(rows) - options.max_failures} older failed rows.</p>" \
         if len(rows) > options.max_failures else ""
     head = f"<p>{len(rows)} failed rows, newest first.</p>"
-    return head + _table(["created (UTC)", "photo", "run", "preset", "failed stage", "failure reason", "reasons"],
+    return head + html_table(["created (UTC)", "photo", "run", "preset", "failed stage", "failure reason", "reasons"],
                          out_rows, "failures") + more

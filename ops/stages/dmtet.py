@@ -14,6 +14,7 @@ deformation, rebuildable with its grid config), preview, run log.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import BadStep, LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.progress import Heartbeat, ProgressFn
 from ops.engine.stage import Stage, StageContext, StageWork, optimising
 from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
@@ -175,15 +177,20 @@ def _no_colour(points: torch.Tensor) -> torch.Tensor:
 
 
 def init_from_nerf(dmtet: DMTet, texture: TextureField, nerf_dir: Path, cfg: DMTetStageConfig,
-                   device: torch.device, generator: torch.Generator) -> tuple[float, Conversion]:
+                   device: torch.device, generator: torch.Generator,
+                   phase: Callable[[str], None] | None = None) -> tuple[float, Conversion]:
     """SDF from the NeRF at the iso-level its silhouettes choose (``nerf_to_dmtet``), texture field
-    fitted to its albedo; returns the fit MSE and the conversion (level, silhouette IoUs)."""
+    fitted to its albedo; returns the fit MSE and the conversion (level, silhouette IoUs).
+    ``phase`` hears which of the two long calls starts (a ``Heartbeat``'s ``set_phase``)."""
+    phase = phase or (lambda _: None)
     nerf, occupancy = load_nerf(nerf_dir, device)
+    phase(f"converting NeRF → DMTet: {len(cfg.conversion.levels)} iso-levels on a {dmtet.config.resolution}³ grid")
     with torch.no_grad():
         conversion = convert(dmtet, nerf, cfg.conversion, occupancy)
         mesh = dmtet()
         pts = jittered_surface_points(mesh.vertices, cfg.colour_fit_points, 2 * dmtet.config.cell_size, generator)
         colours = torch.cat([nerf.query(p).albedo for p in pts.split(1 << 16)])
+    phase(f"fitting the texture field to the NeRF's colours ({cfg.colour_fit_steps} steps)")
     return fit_colour_field(texture, pts, colours, cfg.colour_fit_steps, generator), conversion
 
 
@@ -224,9 +231,11 @@ def load_mesh(path: Path, device: torch.device) -> Mesh:
 
 def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetStageConfig, priors: PriorsConfig, object_id: str,
                 nerf_dir: Path | None = None, init_mesh: Path | None = None, planned_grid: int | None = None,
-                device: str = "auto", seed: int = 0, suite: PriorSuite | None = None) -> StageJob:
+                device: str = "auto", seed: int = 0, suite: PriorSuite | None = None,
+                progress: ProgressFn | None = None) -> StageJob:
     """Stage 1b from the NeRF in ``nerf_dir`` or from an existing asset ``init_mesh``, set up to run
-    (alone or in a batch)."""
+    (alone or in a batch). The set-up (minutes on a CPU: the conversion, the colour fit, loading
+    the priors) reports through ``progress`` every ``HEARTBEAT_S`` s, as the loop does after it."""
     if (nerf_dir is None) == (init_mesh is None):
         raise ValueError("give exactly one of nerf_dir (the NeRF stage's output) or init_mesh (a GLB/OBJ)")
     dev = pick_device(device)
@@ -235,19 +244,23 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetStageConfig, prior
     grid = choose_grid(cfg, planned_grid)
     dmtet = DMTet(DMTetConfig(resolution=grid, deform_scale=cfg.deform_scale), device=dev)
     texture = TextureField(cfg.texture_field, generator=generator).to(dev)
-    if init_mesh is not None:
-        fit_mse = init_from_asset(dmtet, texture, Path(init_mesh), cfg, dev, generator)
-        notes = [f"initialised from {Path(init_mesh).name} (winding number) instead of a NeRF"]
-        init_metrics = {}
-        teacher = None
-    else:
-        fit_mse, conversion = init_from_nerf(dmtet, texture, Path(nerf_dir), cfg, dev, generator)
-        notes = [f"NeRF → DMTet at occupancy level {conversion.level:g}: mean silhouette IoU "
-                 f"{conversion.iou:.3f} against the NeRF over {len(conversion.silhouettes.opacity)} views"]
-        init_metrics = {"iso_level": conversion.level, "init_silhouette_iou": round(conversion.iou, 4)}
-        teacher = conversion.silhouettes
-    target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
-    suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
+    with Heartbeat(progress, "dmtet", announce=True) as beat:
+        if init_mesh is not None:
+            beat.set_phase(f"initialising from {Path(init_mesh).name}: winding number, colour fit")
+            fit_mse = init_from_asset(dmtet, texture, Path(init_mesh), cfg, dev, generator)
+            notes = [f"initialised from {Path(init_mesh).name} (winding number) instead of a NeRF"]
+            init_metrics = {}
+            teacher = None
+        else:
+            fit_mse, conversion = init_from_nerf(dmtet, texture, Path(nerf_dir), cfg, dev, generator, beat.set_phase)
+            notes = [f"NeRF → DMTet at occupancy level {conversion.level:g}: mean silhouette IoU "
+                     f"{conversion.iou:.3f} against the NeRF over {len(conversion.silhouettes.opacity)} views"]
+            init_metrics = {"iso_level": conversion.level, "init_silhouette_iou": round(conversion.iou, 4)}
+            teacher = conversion.silhouettes
+        target = ReferenceTarget.load(reference_dir, cfg.resolution, dev)
+        if suite is None:
+            beat.set_phase("loading the priors")
+            suite = build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
     try:
         task = DMTetTask(cfg, target, suite, dmtet, texture, dev, teacher)
     except BaseException:
@@ -283,7 +296,7 @@ def _build(ctx: StageContext) -> StageWork:
     def start(out: Path) -> StageJob:
         nerf_dir = None if ctx.init_mesh is not None else ctx.dir("nerf")
         return start_dmtet(ctx.dir("reference"), out, cfg.dmtet, cfg.priors, ctx.key, nerf_dir, ctx.init_mesh, grid,
-                           cfg.device, cfg.seed, ctx.suite("dmtet"))
+                           cfg.device, cfg.seed, ctx.suite("dmtet"), ctx.progress())
 
     return optimising(config, start, ctx, inputs)
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weight
 from morpheus_core.part_silhouettes import count_parts
 from morpheus_core.render.textured import load_textured, render_textured
 from ops.engine.previews import save_strip, to_uint8
+from ops.engine.progress import Heartbeat
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
 from ops.engine.target import ReferenceTarget, reference_psnr
@@ -163,7 +165,7 @@ def _weighted(cfg: QAConfig, photo: torch.Tensor, mask: torch.Tensor, views: tor
 
 def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
            upstream: dict[str, dict[str, Any]], prior: str = "", device: str = "auto",
-           nerf_dir: Path | None = None) -> StageResult:
+           nerf_dir: Path | None = None, phase: Callable[[str], None] | None = None) -> StageResult:
     """Measure the written GLB and gather every stage's checks into ``qa.json``.
 
     Metrics: reference view (at ``eval_resolution``) PSNR and SSIM, overall and inside / outside
@@ -175,10 +177,13 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     re-evaluated here with this config's thresholds, so the verdict is one consistent decision.
     Parts: the photo mask's silhouette parts against the GLB's components, and the GLB's
     silhouettes against the NeRF's in ``nerf_dir`` (the ``nerf`` stage's output; None when the
-    asset has no NeRF stage, which leaves ``parts_kept`` unmeasured).
+    asset has no NeRF stage, which leaves ``parts_kept`` unmeasured). ``phase`` hears which
+    measurement starts (a ``Heartbeat``'s ``set_phase``: QA takes minutes on a CPU at paper sizes).
     """
+    phase = phase or (lambda _: None)
     dev = pick_device(device)
     out_dir = Path(out_dir)
+    phase("loading the GLB, mesh health")
     asset = load_textured(glb_path).to(dev)
     checks: dict[str, list[QACheck]] = {s: stage_checks(s, m, cfg) for s, m in upstream.items() if s in CHECKS}
     finite = all(bool(torch.isfinite(t).all()) for t in (asset.vertices, asset.uvs, asset.texture))
@@ -189,6 +194,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     weighted: dict[str, dict[str, Any]] = {}
     if finite and health["faces"]:
         r = cfg.eval_resolution
+        phase(f"reference view at {r} px")
         target = ReferenceTarget.load(reference_dir, r, dev)
         ref_rgb, ref_alpha = _render_views(asset, target.camera, r, 1)
         photo, mask = target.rgb[0].float().cpu(), target.mask[0].float().cpu()
@@ -198,6 +204,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         metrics["ssim_in"], metrics["ssim_out"] = masked_ssim(ref_rgb[0], photo, mask)
         metrics["mask_iou"] = round(mask_iou(ref_alpha[0], mask), 4)
         t = cfg.turntable_resolution
+        phase(f"{cfg.turntable_views} turntable views at {t} px")
         views, alphas = _render_views(asset, turntable(cfg.turntable_views, cfg.turntable_elevation).to(dev), t,
                                       cfg.render_chunk)
         small_photo = F.interpolate(photo[None], size=(t, t), mode="area")[0]
@@ -207,6 +214,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         strip = torch.linspace(0, len(views) - 1, min(cfg.strip_views, len(views))).round().long()
         save_strip(out_dir / QA_TURNTABLE_FILE, list(views[strip]), cfg.preview_size)
         _save_gif(out_dir / QA_TURNTABLE_GIF, views, cfg.preview_size)
+        phase("learned metrics (those whose weights are installed)")
         weighted = _weighted(cfg, photo, mask, views, ref_rgb[0], device)
         for name, w in weighted.items():
             metrics[name] = w["value"]
@@ -222,6 +230,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         own.append(check(spec_of("qa", "hf_ratio"), hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
                           "not measured (flat photo)" if hf is None else
                           f"novel views keep {hf:.2f}× the photo's high-frequency share (minimum {cfg.min_hf_ratio})"))
+        phase("parts against the photo's mask and the NeRF's silhouettes")
         own += _part_checks(cfg, asset, mask[0] > 0.5, int(health["components"] or 0), nerf_dir, dev, metrics)
     else:
         reason = "not measured: non-finite asset" if not finite else "not measured: the GLB has no faces"
@@ -287,8 +296,9 @@ def _build(ctx: StageContext) -> StageWork:
     def body(out: Path, _ckpt: Path | None) -> StageResult:
         upstream = {s: ctx.upstream(s).metrics for s in producers}
         prior = ctx.upstream("texture").prior
-        return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg.qa, upstream, prior, cfg.device,
-                      nerf_dir)
+        with Heartbeat(ctx.progress(), "qa", announce=True) as beat:  # one line at least every 10 s
+            return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg.qa, upstream, prior,
+                          cfg.device, nerf_dir, beat.set_phase)
 
     return StageWork({"qa": cfg.qa}, body)
 
