@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the priors' oracle (benchmarks/oracle.py); each keeps its own stores under --work")
     ap.add_argument("--variants", default="fixed,early",
                     help="which runs of each cell: fixed, early or both; one alone only appends records "
-                         "(compare two record files with benchmarks/records_ab.py)")
+                         "(summarise each record file with --from-records and compare the two)")
     ap.add_argument("--from-records", type=Path, nargs="*", default=None,
                     help="summarise these JSON-lines record files (of earlier, possibly cut-short runs) instead")
     args = ap.parse_args(argv)

@@ -18,20 +18,20 @@
 # ab: paper_speed.py (AB_ARGS) in this tree and in a reference tree made by reversing AB_PATCH (a diff of this
 #   tree against the reference, e.g. `git diff HEAD -- morpheus_core > ab.patch`), reference first; tags
 #   h200_${AB_NAME}_{ref,new}; carry outputs/gpu_refs. The two tables come from one call, so their ratio holds.
-#   AB_ORDER (default "ref new") sets which runs first. Run both orders (two calls) and join them with
-#   benchmarks/speed_ab.py: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever
-#   setting it ran (benchmarks/results/vae_precision_h200.md).
+#   AB_ORDER (default "ref new") sets which runs first. Run both orders (two calls) and compare the pairs of
+#   each call: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever setting it ran
+#   (benchmarks/results/vae_precision_h200.md).
 # curve: fixed schedules under each oracle at once (ES_RUNS="stochastic:paper/40,paper/10:0,1:8 noise-free:paper/10:0:4",
 #   ES_SCENES), then the bake variants of benchmarks/bake_gap.py on the paper/10 stores (BAKE_TIMEOUT s, BAKE_NAME).
 # es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
 #   ES_PATCH, both at once, on the defaults (the fixed schedules: --variants fixed); records named
-#   ${ES_NAME}_{ref,new}; compare them with benchmarks.records_ab.
+#   ${ES_NAME}_{ref,new}; summarise each with `python -m benchmarks.early_stop --from-records` and compare.
 # variants: the CUDA prior tests, then paper_speed.py once per VARIANTS entry "name:key=value,key=value" (config
 #   overrides, e.g. "vae32:priors.vae_dtype=float32 vaeauto:"), with V_ARGS; tags h200_<name>; carry outputs/gpu_refs.
 #   All variants run in one call, so their ratios hold. V_TESTS=0 leaves the tests out.
 # rr: paper_speed.py once per RR_RUNS entry "mode:label" with hashgrid_triton.RUN_REDUCTION set to mode (none, dense,
 #   all), in the order given, with RR_ARGS; tags h200_rr_<mode>_<label>; carry outputs/gpu_refs. One call can hold
-#   both orders of an A/B ("dense:a none:b dense:c"); join the tables with benchmarks/speed_ab.py.
+#   both orders of an A/B ("dense:a none:b dense:c"); compare each call's tables pair by pair.
 # stages: the pipeline tests on CUDA and the stage step-time benchmark (paper and standard presets);
 #   carry outputs/gpu_ref (a reference prepared on the CPU machine by `stage_speed.py --store outputs/gpu_ref`).
 # Everything a mode writes under $OUT comes back as one $OUT/<mode>.tgz: the device tool returns only a

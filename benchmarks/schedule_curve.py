@@ -9,8 +9,8 @@ it) or ``still rising``; the stochastic oracle against the noise-free one where 
 finding "more steps pay" (the longest schedule against the shortest), judged as the other
 findings are and merged into ``findings.json``.
 
-    python -m benchmarks.schedule_curve --records benchmarks/results/schedule_curve_h100.records.jsonl \\
-        benchmarks/results/schedule_curve_noise-free_h100.records.jsonl --name schedule_curve_h100
+    python -m benchmarks.schedule_curve --records benchmarks/results/schedule_curve_h100_stochastic.records.jsonl \\
+        benchmarks/results/schedule_curve_h100_noise-free.records.jsonl --name schedule_curve_h100
 """
 
 from __future__ import annotations
