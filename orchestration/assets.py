@@ -68,7 +68,7 @@ def _logging_progress(context: AssetExecutionContext, every_s: float = HEARTBEAT
             context.log.info(format_event(event))
             return
         if event.stage.count(":") == 2:  # "key:stage:status" once a stage is done
-            context.log.info(event.stage.replace(":", " · "))
+            context.log.info(f"{event.stage.replace(':', ' · ')} ({event.elapsed_s:.0f} s)")
             return
         now = time.monotonic()
         if event.step >= event.total or now - last[0] >= every_s:
