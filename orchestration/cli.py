@@ -100,7 +100,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     return 1 if failed else 0
 
 
-def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
+def gpu_pool(limit: int | None, force: bool, out: TextIO | None = None) -> int:
     """Set the ``gpu`` pool's limit to the leases runs may hold here, GPUs × ``MORPHEUS_GPU_SLOTS``
     (``ops.engine.gpu_lease``; at least 1, so a CPU host still runs its GPU stages on the CPU one at
     a time). A limit set before is kept unless ``force``.
@@ -108,7 +108,9 @@ def gpu_pool(limit: int | None, force: bool, out: TextIO = sys.stdout) -> int:
     ``add-photos`` and ``materialize`` call it too: a pool left on dagster.yaml's ``default_limit``
     is created by the first GPU step that claims a slot, and on Postgres two runs doing that at once
     fail one of them (duplicate key in ``concurrency_limits``; Dagster issue 33552). A limit set
-    here is never re-initialised by the steps."""
+    here is never re-initialised by the steps. ``out``: where to say what it did (None: the
+    ``sys.stdout`` of the moment, not of import time, so a redirected or captured stdout hears it)."""
+    out = out or sys.stdout
     storage = _instance().event_log_storage
     found, slots = gpu_count(), gpu_slots()
     wanted = limit if limit is not None else max(1, found * slots)
