@@ -171,7 +171,7 @@ fi
 if [ "$mode" = speed ]; then
   if [ "${SPEED_TESTS:-0}" = 1 ]; then
     MORPHEUS_TEST_DEVICE=cuda timeout 200 python -m pytest -q -p no:cacheprovider tests/test_cuda.py \
-      tests/test_hashgrid.py tests/test_hashgrid_triton.py tests/test_volume_stack.py tests/test_cuda_volume.py \
+      tests/test_hashgrid.py tests/test_hashgrid_triton.py tests/test_cuda_volume.py \
       > "$out/pytest_cuda_speed.log" 2>&1
     echo "pytest exit $?" >> "$out/pytest_cuda_speed.log"
   fi

@@ -16,7 +16,6 @@ from torch import nn
 from morpheus_core.geometry.field_heads import BACKEND_ENV, evaluate_heads, head_parameters
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField, _mlp
-from morpheus_core.geometry.nerf_stack import FieldStack
 
 CUDA = torch.cuda.is_available()
 if not CUDA:
@@ -224,18 +223,6 @@ def test_field_query_and_gradients_match_eager(monkeypatch: pytest.MonkeyPatch, 
         else:
             assert_near(got_grads[name], want, 5e-3 if CUDA else 1e-5)
     assert albedo_only == (want_grads["density_mlp.0.weight"] is None)
-
-
-def test_field_stack_matches_fields(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv(BACKEND_ENV, "triton")
-    fields = [small_field(20), small_field(21)]
-    points = (torch.rand(90, 3, generator=torch.Generator().manual_seed(22)) - 0.5).to(DEVICE)
-    counts = [60, 30]
-    obj = torch.repeat_interleave(torch.arange(2), torch.tensor(counts)).to(DEVICE)
-    stacked = FieldStack(fields).query(points, obj, counts)
-    alone = [f.query(p) for f, p in zip(fields, points.split(counts), strict=True)]
-    assert_near(stacked.density, torch.cat([s.density for s in alone]), 1e-5)  # the same kernels: equal
-    assert_near(stacked.albedo, torch.cat([s.albedo for s in alone]), 1e-5)
 
 
 def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -76,7 +76,7 @@ def test_gradcheck_table_and_inputs() -> None:
 def _encode_with(grid: HashGrid, x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     from morpheus_core.geometry.hashgrid import _HashEncode
 
-    return _HashEncode.apply(x, None, grid._level_tables(), grid.level_mask, table)
+    return _HashEncode.apply(x, table, grid._level_tables(), grid.level_mask)
 
 
 def test_inactive_levels_get_no_gradient_and_zero_features(device: torch.device) -> None:

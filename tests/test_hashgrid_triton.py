@@ -66,7 +66,7 @@ def assert_near(got: torch.Tensor | None, want: torch.Tensor | None, rel: float)
 
 def compare(config: HashGridConfig, level_mask: torch.Tensor, n: int = 160, seed: int = 0, objects: int = 1) -> None:
     """Kernels against the eager code; ``objects`` > 1: that many tables one after another, each point
-    reading the table of a random object (``encode_stacked``'s row bases)."""
+    reading the table of a random object (the kernels' row bases)."""
     x, table, tables = inputs(config, n, seed)
     base = None
     if objects > 1:

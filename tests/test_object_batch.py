@@ -20,7 +20,6 @@ from ops.engine.pipeline import run_photo
 from ops.engine.pipeline_batch import run_batch
 from ops.engine.progress import ProgressEvent
 from ops.stages import dmtet as dmtet_stage
-from ops.stages import nerf as nerf_stage
 from orchestration.settings import OrchestrationSettings
 from tests.helpers import PooledPrior, RandomPrior, TinyFinetunedPrior
 from tests.pipeline_helpers import PHOTOS, cli_overrides, manifest, output_hashes, tiny_config
@@ -216,71 +215,3 @@ def test_batching_photos_together_in_dagster_is_a_setting() -> None:
     assert OrchestrationSettings.from_env({"MORPHEUS_BATCH_TOGETHER": "true"}).batch_together
     with pytest.raises(ValueError, match="MORPHEUS_BATCH_TOGETHER"):
         OrchestrationSettings.from_env({"MORPHEUS_BATCH_TOGETHER": "sometimes"})
-
-
-def _nerf_tensors(store: Store, key: str) -> dict[str, torch.Tensor]:
-    from safetensors.torch import load_file
-
-    from ops.stages.nerf import NERF_FILE
-
-    return load_file(str(store.stage_dir(key, "nerf") / NERF_FILE))
-
-
-def test_nerf_objects_rendered_together_equal_one_by_one_runs_to_rounding(
-        single: Store, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``MORPHEUS_NERF_STACK=on``: one stacked field query for all objects. Per-ray and per-row sums
-    then run over other sizes (CPU reductions pick their strategy by size), so the fields agree
-    with the one-by-one runs to rounding, not to the bit."""
-    monkeypatch.setenv("MORPHEUS_NERF_STACK", "on")
-    store = Store(tmp_path / "store")
-    _copy_stages(single, store, ("reference",))
-    rendered_together = []
-    real = nerf_stage.NerfTask.render_together.__func__  # type: ignore[attr-defined]
-
-    def spy(cls, tasks, step, generators):  # type: ignore[no-untyped-def]
-        out = real(cls, tasks, step, generators)
-        rendered_together.append(out is not None)
-        return out
-
-    monkeypatch.setattr(nerf_stage.NerfTask, "render_together", classmethod(spy))
-    outcomes = run_batch(_photos(), store, CFG, "tiny", until="nerf")
-    assert [o.error for o in outcomes] == [None] * len(KEYS)
-    assert rendered_together and all(rendered_together)
-    for key in KEYS:
-        alone, together = _nerf_tensors(single, key), _nerf_tensors(store, key)
-        assert alone.keys() == together.keys()
-        for name, value in alone.items():
-            torch.testing.assert_close(together[name], value, rtol=1e-4, atol=1e-7, msg=f"{key}: {name}")
-    monkeypatch.setenv("MORPHEUS_NERF_STACK", "sometimes")
-    with pytest.raises(ValueError, match="MORPHEUS_NERF_STACK must be on or off"):
-        nerf_stage.stacking_objects()
-
-
-def test_an_object_rendered_together_with_a_non_finite_render_sits_the_step_out(
-        single: Store, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Its parameters share the stacked graph, yet they get no gradient (no Adam update) while the
-    others get the gradients their one-by-one renders give."""
-    monkeypatch.setenv("MORPHEUS_NERF_STACK", "on")
-
-    def batch() -> object_batch.BatchTask:
-        jobs = [nerf_stage.start_nerf(single.stage_dir(k, "reference"), tmp_path / k, CFG.nerf, CFG.priors, k,
-                                      "cpu", 0) for k in KEYS]
-        with torch.no_grad():
-            jobs[1].task.field.albedo_mlp[0].weight.fill_(float("nan"))
-        return object_batch.BatchTask([j.task for j in jobs], [j.generator for j in jobs])
-
-    def grads(b: object_batch.BatchTask) -> list[list[torch.Tensor | None]]:
-        b.step(0, torch.Generator().manual_seed(0)).loss.backward()
-        return [[p.grad for p in t.field.parameters()] for t in b.tasks]
-
-    together = batch()
-    got = grads(together)
-    assert together.bad_steps == [0, 1, 0] and all(g is None for g in got[1])
-    monkeypatch.setenv("MORPHEUS_NERF_STACK", "off")
-    want = grads(batch())
-    for i in (0, 2):
-        for a, b in zip(got[i], want[i], strict=True):
-            assert a is not None and torch.isfinite(a).all()
-            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-7)
-    together.after_step(True)
-    assert not together._hooks  # the hooks end with their step

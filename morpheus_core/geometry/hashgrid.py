@@ -24,7 +24,6 @@ beyond float rounding and a config field would change the config hashes of exist
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -143,7 +142,8 @@ def _positions(x: Tensor, tables: _LevelTables) -> tuple[Tensor, Tensor]:
 
 def _row_indices(cell: Tensor, tables: _LevelTables, base: Tensor | None = None) -> Tensor:
     """(N, L, 8) rows of the flat table holding each corner's features; ``base`` (N,): each point's
-    first row in a table of several objects' tables one after another (``encode_stacked``)."""
+    first row in a table of several tables one after another (the reference for the kernels' row
+    bases, ``hashgrid_triton.encode_forward``)."""
     coords = cell.unsqueeze(-1) + tables.steps  # (N, L, 3, 2)
     k = tables.n_dense
     dense = _corner_product(coords[:, :k] * tables.strides[:k].unsqueeze(-1), "add")
@@ -208,32 +208,24 @@ def _triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
 
 
 class _HashEncode(torch.autograd.Function):
-    """Fused Triton kernels on CUDA, else pure tensor functions, compiled on CUDA (``compiled_for``).
-
-    Several grids' tables (``encode_stacked``; ``base``: each point's first row) are laid one after
-    another for the kernel but stay separate inputs: each gets its slice of the gradient straight
-    from this node, and no ``torch.cat`` node holds the whole stack's gradient."""
+    """Fused Triton kernels on CUDA, else pure tensor functions, compiled on CUDA (``compiled_for``)."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, base: Tensor | None, tables: _LevelTables, level_mask: Tensor,  # type: ignore[override]
-                *grid_tables: Tensor) -> Tensor:
-        table = torch.cat(grid_tables) if len(grid_tables) > 1 else grid_tables[0]
-        ctx.save_for_backward(x, base, level_mask, table)
+    def forward(ctx, x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(x, level_mask, table)
         ctx.tables = tables
         ctx.kernels = kernels = _triton_kernels(x, table)  # the backward uses the forward's choice
         if kernels is not None:
-            return kernels.encode_forward(x, table, tables, level_mask, base)
-        return compiled_for(_encode, x.device)(x, table, tables, level_mask, base)
+            return kernels.encode_forward(x, table, tables, level_mask)
+        return compiled_for(_encode, x.device)(x, table, tables, level_mask)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        x, base, level_mask, table = ctx.saved_tensors
-        want_x, want_table = bool(ctx.needs_input_grad[0]), any(ctx.needs_input_grad[4:])
+        x, level_mask, table = ctx.saved_tensors
+        want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
         backward = ctx.kernels.encode_backward if ctx.kernels is not None else compiled_for(_encode_backward, x.device)
-        grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table, base)
-        n_grids = len(ctx.needs_input_grad) - 4
-        grads = grad_table.chunk(n_grids) if grad_table is not None else (None,) * n_grids
-        return (grad_x, None, None, None, *grads)
+        grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
+        return grad_x, grad_table, None, None
 
 
 class HashGrid(nn.Module):
@@ -275,7 +267,7 @@ class HashGrid(nn.Module):
         return self._tables
 
     def forward(self, x: Tensor) -> Tensor:
-        out = _HashEncode.apply(_flat_points(x), None, self._level_tables(), self.level_mask, self.table)
+        out = _HashEncode.apply(_flat_points(x), self.table, self._level_tables(), self.level_mask)
         return out.reshape(*x.shape[:-1], self.output_dim)
 
 
@@ -287,27 +279,3 @@ def _flat_points(x: Tensor) -> Tensor:
     if flat.dtype not in (torch.float32, torch.float64):
         flat = flat.float()
     return flat.clamp(0.0, 1.0)
-
-
-def encode_stacked(grids: Sequence[HashGrid], x: Tensor, obj: Tensor) -> Tensor:
-    """(N, 3) points of several objects encoded in one launch: point i by ``grids[obj[i]]``, as that
-    grid's own ``forward`` would (a batch's objects share one kernel launch instead of one each).
-
-    The grids must share their config and their active levels (objects at the same step); the first
-    grid's level mask is used, and a different one fails (a device assertion on CUDA: no sync). Each
-    grid's table gets its own gradient (``_HashEncode``)."""
-    first = grids[0]
-    if any(g.config != first.config for g in grids):
-        raise ValueError("stacked hash grids must share one config")
-    if x.shape[:-1] != obj.shape:
-        raise ValueError(f"one object index per point: points {tuple(x.shape)}, obj {tuple(obj.shape)}")
-    masks = torch.stack([g.level_mask for g in grids])
-    same = (masks == first.level_mask).all()
-    if same.device.type == "cuda":
-        torch._assert_async(same, "stacked hash grids must have the same active levels")
-    elif not bool(same):
-        raise ValueError("stacked hash grids must have the same active levels (objects at one step)")
-    base = obj.reshape(-1).to(torch.int64) * first.table.shape[0]
-    out = _HashEncode.apply(_flat_points(x), base, first._level_tables(), first.level_mask,
-                               *[g.table for g in grids])
-    return out.reshape(*x.shape[:-1], first.output_dim)

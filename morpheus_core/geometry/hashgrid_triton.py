@@ -197,8 +197,9 @@ def _launch_options() -> dict[str, Any]:
 
 
 def _row_bases(x: Tensor, base: Tensor | None) -> Tensor:
-    """The kernels' base pointer: the points' first table rows (``hashgrid.encode_stacked``), or any
-    int64 tensor when there is none (the STACKED flag then drops the load)."""
+    """The kernels' base pointer: the points' first table rows (several tables one after another;
+    no pipeline path passes them since the stacked NeRF render went), or any int64 tensor when
+    there is none (the STACKED flag then drops the load)."""
     if base is None:
         return x.new_zeros(1, dtype=torch.int64)
     if base.shape != (x.shape[0],) or base.device != x.device:

@@ -83,56 +83,27 @@ class BatchTask:
         self.bad_steps = [0] * len(tasks)
         self.stopped: dict[int, int] = {}  # object → the step its scene converged at
         self._live: list[int] = []
-        self._hooks: list[Any] = []  # ``_cut_off``'s, removed after the step
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {f"{i}.{name}": opt for i, t in enumerate(self.tasks) for name, opt in t.optimizers().items()}
 
-    def _render_each(self, running: list[int], step: int) -> tuple[list[int], list[RenderedStep]]:
+    def _render_all(self, step: int) -> tuple[list[int], list[RenderedStep]]:
+        """Each running object's renders, one by one; an object whose step is bad sits it out."""
         live, rendered = [], []
-        for i in running:
+        for i in (i for i in range(len(self.tasks)) if i not in self.stopped):
             try:
                 rendered.append(self.tasks[i].render_step(step, self.generators[i]))
                 live.append(i)
             except BadStep:
                 self.bad_steps[i] += 1
-        return live, rendered
-
-    def _render_all(self, step: int) -> tuple[list[int], list[RenderedStep]]:
-        running = [i for i in range(len(self.tasks)) if i not in self.stopped]
-        together = None
-        if len(running) > 1:
-            try:
-                together = type(self.tasks[0]).render_together([self.tasks[i] for i in running], step,
-                                                               [self.generators[i] for i in running])
-            except BadStep:
-                for i in running:
-                    self.bad_steps[i] += 1
-                return [], []
-        live, rendered = (running, together) if together is not None else self._render_each(running, step)
         if rendered:  # one sync for all objects: which of them rendered something finite
             finite = torch.stack([torch.isfinite(r.novel).all() & torch.isfinite(r.reference).all()
                                   & torch.isfinite(r.extra_loss) for r in rendered]).tolist()
             for i in [i for i, ok in zip(live, finite, strict=True) if not ok]:
                 self.bad_steps[i] += 1
-            if together is not None:
-                self._cut_off([i for i, ok in zip(live, finite, strict=True) if not ok])
             live = [i for i, ok in zip(live, finite, strict=True) if ok]
             rendered = [r for r, ok in zip(rendered, finite, strict=True) if ok]
         return live, rendered
-
-    def _cut_off(self, objects: list[int]) -> None:
-        """Objects rendered together with the others but left out of the loss: their parameters
-        still sit in the shared graph, where 0·NaN could reach their gradients and the loop's guard
-        would then skip the whole batch's step. Their gradients are dropped as they accumulate, so
-        they sit the step out as they would alone (no gradient, no Adam update)."""
-        def drop(p: Tensor) -> None:
-            p.grad = None
-
-        for i in objects:
-            for opt in self.tasks[i].optimizers().values():
-                self._hooks += [p.register_post_accumulate_grad_hook(drop) for g in opt.param_groups
-                                for p in g["params"]]
 
     def step(self, step: int, generator: torch.Generator) -> StepOutput:
         live, rendered = self._render_all(step)
@@ -151,9 +122,6 @@ class BatchTask:
         return step_output(out, extra, terms, bool(lead.guidance.needs_finetuned))
 
     def after_step(self, ok: Tensor | bool) -> None:
-        for hook in self._hooks:
-            hook.remove()
-        self._hooks = []
         for i, task in enumerate(self.tasks):
             task.after_step(ok if i in self._live else False)
 

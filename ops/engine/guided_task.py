@@ -10,7 +10,7 @@ the guidance is what lets ``ops.engine.batch`` guide many objects with one prior
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -76,13 +76,6 @@ class GuidedTask(ABC):
     @abstractmethod
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         """This step's renders (reference view and random views) and the stage's own losses."""
-
-    @classmethod
-    def render_together(cls, tasks: Sequence[GuidedTask], step: int,
-                        generators: Sequence[torch.Generator]) -> list[RenderedStep] | None:
-        """Every task's ``render_step`` (same stage, one object each) done in one pass, where the
-        stage can render its objects together; None where it cannot (the caller renders them one by one)."""
-        return None
 
     def step(self, step: int, generator: torch.Generator) -> StepOutput:
         """One step's loss: the reference view and random views under the guidance."""

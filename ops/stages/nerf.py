@@ -9,8 +9,6 @@ grid), ``preview.png`` (photo | reference render | novel views), ``runlog.parque
 
 from __future__ import annotations
 
-import os
-from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -21,12 +19,10 @@ from torch import Tensor
 from morpheus_core.devices import pick_device
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.geometry.nerf_stack import FieldStack
 from morpheus_core.guidance_presets import NERF_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.sample_budget import SampleBudget
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
-from morpheus_core.render.volume_stack import render_volume_stack
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
@@ -37,20 +33,6 @@ from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
 
 NERF_FILE = "nerf.safetensors"
-STACK_ENV = "MORPHEUS_NERF_STACK"
-"""``on``: a batch's objects are rendered together (``NerfTask.render_together``); ``off`` (the
-default): one by one. Measured on the H200 (paper NeRF, ``benchmarks/results/nerf_stack_h200.md``):
-−8 % a step at 4 objects, none at 8 (743–794 vs 741 ms in one call), +20 GiB at 8, and 16 objects
-out of memory, so it is not the default. An environment variable, not a config field: it changes
-results only by float summation order, and a field would change the config hash of every store."""
-
-
-def stacking_objects() -> bool:
-    """Whether ``MORPHEUS_NERF_STACK`` asks for batches rendered together."""
-    value = os.environ.get(STACK_ENV, "off")
-    if value not in ("on", "off"):
-        raise ValueError(f"{STACK_ENV} must be on or off, got {value!r}")
-    return value == "on"
 CODE_VERSION = "nerf_fit-2"  # 2: the official loss balance (a version string, kept as existing stores hold it)
 
 
@@ -148,39 +130,6 @@ class NerfTask(GuidedTask):
         cams = novel_cameras(self.cfg.n_views, generator, self.device)
         novel = self._render(cams, generator, self.cfg.normal_smooth_weight > 0, "novel")
         return self._step_losses(ref, cams, novel)
-
-    @classmethod
-    def render_together(cls, tasks: Sequence[GuidedTask], step: int,
-                        generators: Sequence[torch.Generator]) -> list[RenderedStep] | None:
-        """All objects' reference views in one stacked render, then all their random views in
-        another (``render_volume_stack``): each object draws from its own generator in the order
-        ``render_step`` does, so it gets the renders it would get alone (to float summation order).
-        Only under ``MORPHEUS_NERF_STACK=on`` (``STACK_ENV``), and only exact sample buffers (``auto``
-        in a batch); other buffers and the transmittance probe render one by one."""
-        if not stacking_objects():
-            return None
-        nerfs = [t for t in tasks if isinstance(t, NerfTask)]
-        cfg = nerfs[0].cfg if nerfs else None
-        if len(nerfs) != len(tasks) or any(t.cfg != cfg for t in nerfs) or cfg.render.transmittance_threshold > 0:
-            return None
-        for t in nerfs:
-            t._resolve_buffer()
-        if any(t.budget is not None for t in nerfs):
-            return None
-        for t, g in zip(nerfs, generators, strict=True):
-            t._prepare(step, g)
-        stack = FieldStack([t.field for t in nerfs])
-        occupancy = [t.occupancy for t in nerfs] if cfg.use_occupancy else None
-        size = cfg.resolution
-
-        def render(cameras: list[Any], with_normals: bool) -> list[Any]:
-            config = replace(cfg.render, stratified=True, with_normals=with_normals)
-            return render_volume_stack(stack, cameras, size, size, config, 1.0, occupancy, generators)
-
-        refs = render([t.target.camera for t in nerfs], False)
-        cams = [novel_cameras(cfg.n_views, g, t.device) for t, g in zip(nerfs, generators, strict=True)]
-        novels = render(cams, cfg.normal_smooth_weight > 0)
-        return [t._step_losses(r, c, n) for t, r, c, n in zip(nerfs, refs, cams, novels, strict=True)]
 
     def last_phase(self, step: int) -> bool:
         # Finer hash-grid levels still switching on: stopping now would leave them untrained.
