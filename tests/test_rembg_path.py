@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import socket
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -128,8 +129,21 @@ def test_useless_model_output_is_rejected_then_classical(tmp_path, no_network) -
     assert "mask is empty" in info.chain[1].detail
 
 
+def _no_matting(*args: object, **kwargs: object) -> None:
+    raise AssertionError("alpha matting is not part of the session under test")
+
+
 def test_matches_rembg_own_custom_session(tmp_path, monkeypatch) -> None:
     """Same pre/post-processing as rembg's U2netCustomSession on the same model and image."""
+    # Importing the rembg package JIT-compiles pymatting's alpha-matting kernels with numba (about 60 s
+    # on 2 cores in every fresh venv); the session compared here never mattes, so pymatting is stubbed.
+    for name in ("pymatting", "pymatting.alpha", "pymatting.alpha.estimate_alpha_cf", "pymatting.foreground",
+                 "pymatting.foreground.estimate_foreground_ml", "pymatting.util", "pymatting.util.util"):
+        stub = types.ModuleType(name)
+        stub.estimate_alpha_cf = stub.estimate_foreground_ml = stub.stack_images = _no_matting  # type: ignore[attr-defined]
+        monkeypatch.setitem(sys.modules, name, stub)
+    for name in [m for m in sys.modules if m == "rembg" or m.startswith("rembg.")]:
+        monkeypatch.delitem(sys.modules, name)  # imported afresh on the stubs, and dropped after the test
     rembg_sessions = pytest.importorskip("rembg.sessions.u2net_custom")
     import onnxruntime as ort
 
