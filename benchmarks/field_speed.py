@@ -6,7 +6,7 @@ Measures (forward + backward, median of repeats):
 - a volume render of a 128² image at 256 samples per ray of the paper-size NeRF (blob init),
   with and without the occupancy grid and the central-difference normals;
 - the field's two MLP heads (32 → 64 → 64 → 1 and → 3) on 2^22 rows, forward + backward, as
-  ``nn.Sequential`` modules and, on CUDA, as the fused kernels (``MORPHEUS_FIELD_MLP``), with fp32
+  ``nn.Sequential`` modules and, on CUDA, as the fused kernels (``execution.field_mlp``), with fp32
   matmuls full precision and TF32; and the volume render with either.
 
     python benchmarks/field_speed.py --tag cpu            # writes benchmarks/results/field_speed_cpu.{json,md}
@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import datetime as dt
 import json
-import os
 import platform
 import statistics
 import time
@@ -30,7 +30,7 @@ import torch
 
 from benchmarks.timing import sync_device
 from morpheus_core.cameras import sample_orbit
-from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
+from morpheus_core.execution import current_execution, executing
 from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
@@ -71,18 +71,14 @@ def bench_hashgrid(device: torch.device, repeats: int, compiled: bool) -> dict[s
 
 @contextlib.contextmanager
 def settings(heads: str, tf32: bool) -> Iterator[None]:
-    """``MORPHEUS_FIELD_MLP`` and PyTorch's TF32 switch for fp32 matmuls, restored afterwards."""
-    old_env, old_tf32 = os.environ.get(HEADS_ENV), torch.backends.cuda.matmul.allow_tf32
-    os.environ[HEADS_ENV] = heads
+    """``execution.field_mlp`` and PyTorch's TF32 switch for fp32 matmuls, restored afterwards."""
+    old_tf32 = torch.backends.cuda.matmul.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = tf32
     try:
-        yield
+        with executing(dataclasses.replace(current_execution(), field_mlp=heads)):  # type: ignore[arg-type]
+            yield
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old_tf32
-        if old_env is None:
-            os.environ.pop(HEADS_ENV, None)
-        else:
-            os.environ[HEADS_ENV] = old_env
 
 
 def bench_heads(device: torch.device, repeats: int, rows: int, heads: str, tf32: bool) -> dict[str, float]:

@@ -5,11 +5,11 @@ The paper's NeRF grid (``HashGridConfig()``: 16 levels × 2 features, 2^19-row t
 gradients (table and points), timed with CUDA events over 20 iterations after warm-up; and the
 Triton kernels' max abs error against eager (forward, grad_table, grad_x) at 2^16 points.
 
-Paths (picked by environment variables, read per call, as in the pipeline):
-- eager: ``MORPHEUS_HASHGRID=eager MORPHEUS_COMPILE=0``, the tensor code uncompiled;
-- compiled: ``MORPHEUS_HASHGRID=eager`` with ``compiled_for``'s default on CUDA (``torch.compile``,
+Paths (applied as execution settings, ``morpheus_core.execution``, as a pipeline run does):
+- eager: ``execution.hashgrid=eager execution.compile=false``, the tensor code uncompiled;
+- compiled: ``execution.hashgrid=eager`` with ``compiled_for``'s default on CUDA (``torch.compile``,
   dynamic shapes): the CUDA default before the Triton kernels;
-- triton: ``MORPHEUS_HASHGRID=triton``, the fused kernels (``hashgrid_triton``): the CUDA default now.
+- triton: ``execution.hashgrid=triton``, the fused kernels (``hashgrid_triton``): the CUDA default now.
 
     python -m benchmarks.hashgrid_kernel    # on CUDA; writes benchmarks/results/hashgrid_kernel_h200.{json,md}
 """
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import platform
 import statistics
 import sys
@@ -30,20 +29,21 @@ import torch
 
 from assets_store.atomic import atomic_write_text
 from morpheus_core.devices import compile_enabled
-from morpheus_core.geometry.hashgrid import BACKEND_ENV, HashGrid, HashGridConfig
+from morpheus_core.execution import ExecutionConfig, apply_execution
+from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COMMAND = "python -m benchmarks.hashgrid_kernel"
 SIZES = (1 << 16, 1 << 18, 1 << 20)
-PATHS: dict[str, dict[str, str]] = {
-    "eager": {BACKEND_ENV: "eager", "MORPHEUS_COMPILE": "0"},
-    "compiled": {BACKEND_ENV: "eager", "MORPHEUS_COMPILE": "1"},
-    "triton": {BACKEND_ENV: "triton", "MORPHEUS_COMPILE": "1"},
+PATHS: dict[str, ExecutionConfig] = {
+    "eager": ExecutionConfig(hashgrid="eager", compile=False),
+    "compiled": ExecutionConfig(hashgrid="eager", compile=True),
+    "triton": ExecutionConfig(hashgrid="triton", compile=True),
 }
 
 
 def use_path(name: str) -> None:
-    os.environ.update(PATHS[name])
+    apply_execution(PATHS[name])
 
 
 def cuda_timed(fn: Callable[[], object], iters: int, warmup: int) -> dict[str, float]:
@@ -201,7 +201,7 @@ def main() -> None:
     device = torch.device("cuda")
     import triton
 
-    # Whether compiled_for compiled on CUDA before this run set MORPHEUS_COMPILE (its default: yes).
+    # Whether compiled_for compiled on CUDA before this run applied its paths (the default: yes).
     compiled_default = compile_enabled(device)
     rows: list[dict[str, object]] = []
     for n in SIZES:

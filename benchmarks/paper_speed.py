@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import shutil
 import sys
@@ -39,9 +38,7 @@ from assets_store.store import Store
 from benchmarks.prior_speed import _build
 from benchmarks.timing import sync_device
 from morpheus_core.cuda_graphs import GraphedCall
-from morpheus_core.geometry.field_heads import BACKEND_ENV as HEADS_ENV
-from morpheus_core.geometry.field_heads import DEFAULT as HEADS_DEFAULT
-from morpheus_core.geometry.hashgrid import BACKEND_ENV
+from morpheus_core.execution import apply_execution, current_execution
 from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
@@ -111,10 +108,12 @@ def build_rig(device: str, mode: str, preset_name: str, scale: str, overrides: l
               work: Path, tf32: bool = True) -> Rig:
     """The mode's settings (``MODES``) applied to this process, the example references prepared in
     ``store`` and the priors built: what every timed row starts from."""
-    os.environ["MORPHEUS_COMPILE"] = MODES[mode]["compile"]
     dev = torch.device(device)
     accel = MODES[mode]["accel"] if dev.type == "cuda" else "eager"
-    cfg = preset(preset_name, [f"device={device}", "priors.kind=real", f"priors.accel={accel}", *overrides])
+    compiled = "true" if MODES[mode]["compile"] == "1" else "false"
+    cfg = preset(preset_name, [f"device={device}", "priors.kind=real", f"priors.accel={accel}",
+                               f"execution.compile={compiled}", *overrides])
+    apply_execution(cfg.execution)  # as a run does at start-up: the rows start the stages directly
     if dev.type == "cuda":  # TF32 as in every earlier speed result; the pipeline itself keeps fp32 matmuls
         torch.backends.cuda.matmul.allow_tf32 = tf32
         torch.backends.cudnn.allow_tf32 = True
@@ -251,8 +250,8 @@ def to_markdown(res: dict) -> str:
     lines = [f"# Paper schedule speed, mode `{res['mode']}` — {res['device']}, {res['date']}", "",
              f"torch {res['torch']}; full-size prior architectures with random weights ({res['scale']}); "
              f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}, hash-grid kernels "
-             f"`{res.get('hashgrid', 'auto')}` ({BACKEND_ENV}), field heads `{res.get('field_mlp', 'eager')}` "
-             f"({HEADS_ENV}), fp32 matmuls {'in TF32' if res.get('tf32', True) else 'at full precision'}; "
+             f"`{res.get('hashgrid', 'auto')}` (execution.hashgrid), field heads `{res.get('field_mlp', 'eager')}` "
+             f"(execution.field_mlp), fp32 matmuls {'in TF32' if res.get('tf32', True) else 'at full precision'}; "
              f"{res['warmup']} warm-up + {res['steps']} timed steps per row (mean); schedule "
              f"{sched['nerf']} + {sched['dmtet']} + {sched['texture']} steps. "
              f"Command: `{res['command']}`.", "",
@@ -310,7 +309,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep fp32 matmuls at full precision, as the pipeline does (default: TF32, as earlier results)")
     args = p.parse_args(argv)
 
-    mode = MODES[args.mode]
     work = Path(tempfile.mkdtemp(prefix="paper_speed_"))
     t_start = time.perf_counter()
     rig = build_rig(args.device, args.mode, args.preset, args.scale, args.overrides, args.store, work,
@@ -327,9 +325,9 @@ def main(argv: list[str] | None = None) -> int:
     def write() -> str:  # after every row: a call cut short by its time limit keeps what it measured
         res = {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "device": name, "torch": torch.__version__,
                "mode": args.mode, "accel": accel, "peak": "reserved",
-               "compiled": dev.type == "cuda" and mode["compile"] == "1",
-               "hashgrid": os.environ.get(BACKEND_ENV) or "auto",
-               "field_mlp": os.environ.get(HEADS_ENV) or HEADS_DEFAULT, "tf32": not args.fp32_matmul,
+               "compiled": dev.type == "cuda" and current_execution().compile,
+               "hashgrid": current_execution().hashgrid,
+               "field_mlp": current_execution().field_mlp, "tf32": not args.fp32_matmul,
                "scale": args.scale, "preset": args.preset, "steps": args.steps, "warmup": args.warmup,
                "schedule": schedule, "rows": rows, "projections": projections(rows, schedule),
                "wall_s": round(time.perf_counter() - t_start, 1),

@@ -3,7 +3,6 @@ how host-drawn random values reach it without stalling the host."""
 
 from __future__ import annotations
 
-import os
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -11,15 +10,19 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from morpheus_core.execution import current_execution
+
 # ``torch.compile`` of hot pure-tensor kernels (the hash-grid encode): on CUDA only — it fuses the
 # gather/weight arithmetic into a few Triton kernels (DESIGN.md §7: 14 → 2 ms per 2^18 points) —
 # while CPU keeps the eager code (inductor's CPU path needs a compiler and pays minutes of
-# compilation for little gain). ``MORPHEUS_COMPILE=0`` turns it off (debugging, benchmarks' "before").
+# compilation for little gain). ``execution.compile=false`` (``morpheus_core.execution``, alias
+# ``MORPHEUS_COMPILE=0``) turns it off (debugging, benchmarks' "before").
 _compiled: dict[Callable[..., Any], Callable[..., Any]] = {}
 
 
 def compile_enabled(device: torch.device) -> bool:
-    return device.type == "cuda" and os.environ.get("MORPHEUS_COMPILE", "1") != "0"
+    """Whether ``compiled_for`` compiles on ``device``: CUDA, unless ``execution.compile`` is off."""
+    return device.type == "cuda" and current_execution().compile
 
 
 def compiled_for(fn: Callable[..., Any], device: torch.device) -> Callable[..., Any]:

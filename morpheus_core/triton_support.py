@@ -1,14 +1,14 @@
 """What every Triton kernel module here shares: the guarded import, where kernels can run, and the
-environment switch that picks a kernel or the eager PyTorch code.
+choice between a kernel and the eager PyTorch code (``choose``).
 
 Triton reads ``TRITON_INTERPRET`` when it is first imported (its own library functions are
 ``@triton.jit`` too): so this module does not import it; the kernel modules (``hashgrid_triton``,
 ``mlp_triton``) do, through ``load_triton``, and they are imported lazily by the code that chooses
 them, after the CPU tests have set ``TRITON_INTERPRET=1``.
 
-A switch is an environment variable (``auto`` | ``triton`` | ``eager``), not a config field,
-because a kernel changes results only by float rounding, and a config field would change the
-config hashes of existing stores.
+The choice (``auto`` | ``triton`` | ``eager``) is a field of ``morpheus_core.execution.ExecutionConfig``,
+the process-wide execution settings, not of a stage's config: a kernel changes results only by
+float rounding, so it must not change the fingerprints of existing stores.
 """
 
 from __future__ import annotations
@@ -39,9 +39,6 @@ def _no_jit(fn: Any = None, **_options: Any) -> Any:
     return fn if fn is not None else (lambda f: f)
 
 
-CHOICES = ("auto", "triton", "eager")
-
-
 def interpreting() -> bool:
     """Whether Triton runs its CPU interpreter (``TRITON_INTERPRET=1``) instead of compiling."""
     return os.environ.get("TRITON_INTERPRET", "0") == "1"
@@ -57,20 +54,16 @@ def device_guard(x: torch.Tensor) -> Any:
     return torch.cuda.device(x.device) if x.device.type == "cuda" else contextlib.nullcontext()
 
 
-def choose(env: str, device: torch.device, supported: Callable[[], bool], load: Callable[[], ModuleType],
-           what: str, default: str = "auto") -> ModuleType | None:
-    """The kernel module ``load()`` when ``env`` asks for it and it can run on ``device``, else None
-    (the caller's eager code).
+def choose(choice: str, key: str, device: torch.device, supported: Callable[[], bool],
+           load: Callable[[], ModuleType], what: str) -> ModuleType | None:
+    """The kernel module ``load()`` when ``choice`` (the setting ``key`` of ``ExecutionConfig``,
+    validated there) asks for it and it can run on ``device``, else None (the caller's eager code).
 
-    ``default`` applies when ``env`` is unset. ``auto``: the kernels on CUDA; the CPU never imports
-    them (nor Triton), so its path stays the eager code. ``triton``: insist, an error where they
-    cannot run (a CPU without ``TRITON_INTERPRET=1``). ``eager``: the tensor code everywhere.
-    Inputs the kernels do not take (``supported()`` false: float64 for gradcheck, an unsupported
-    width) run eagerly under any choice.
+    ``auto``: the kernels on CUDA; the CPU never imports them (nor Triton), so its path stays the
+    eager code. ``triton``: insist, an error where they cannot run (a CPU without
+    ``TRITON_INTERPRET=1``). ``eager``: the tensor code everywhere. Inputs the kernels do not take
+    (``supported()`` false: float64 for gradcheck, an unsupported width) run eagerly under any choice.
     """
-    choice = os.environ.get(env) or default
-    if choice not in CHOICES:
-        raise ValueError(f"{env} must be one of {', '.join(CHOICES)}; got {choice!r}")
     if choice == "eager" or (choice == "auto" and device.type != "cuda"):
         return None
     if not supported():
@@ -80,6 +73,6 @@ def choose(env: str, device: torch.device, supported: Callable[[], bool], load: 
     if choice == "triton":
         reason = "triton is not installed" if importlib.util.find_spec("triton") is None else (
             f"Triton needs a CUDA device (or TRITON_INTERPRET=1 for its CPU interpreter), got {device}")
-        raise RuntimeError(f"{env}=triton but the Triton {what} kernels cannot run here: {reason}; "
-                           f"set {env}=auto or eager")
+        raise RuntimeError(f"{key}=triton but the Triton {what} kernels cannot run here: {reason}; "
+                           f"set {key}=auto or eager")
     return None

@@ -72,9 +72,10 @@ def test_decimating_a_cuda_mesh_keeps_it_on_the_gpu() -> None:
 
 
 @pytest.mark.parametrize("n", [1000, 37_123])
-def test_compiled_hash_grid_matches_eager_forward_and_backward(n: int, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_compiled_hash_grid_matches_eager_forward_and_backward(n: int) -> None:
     """The CUDA path compiles the encode kernels (torch.compile, dynamic shapes); values and both
     gradients must match the eager kernels at any point count."""
+    from morpheus_core.execution import ExecutionConfig, executing
     from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 
     grid = HashGrid(HashGridConfig(), generator=torch.Generator().manual_seed(n)).cuda()
@@ -83,17 +84,16 @@ def test_compiled_hash_grid_matches_eager_forward_and_backward(n: int, monkeypat
     x = torch.rand(n, 3, generator=torch.Generator().manual_seed(n + 1)).cuda()
     w = torch.randn(n, grid.output_dim, generator=torch.Generator().manual_seed(n + 2)).cuda()
 
-    monkeypatch.setenv("MORPHEUS_HASHGRID", "eager")  # the tensor code, compiled or not (Triton: its own test)
-
-    def run(compile_flag: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        monkeypatch.setenv("MORPHEUS_COMPILE", compile_flag)
-        xi = x.clone().requires_grad_(True)
-        grid.table.grad = None
-        out = grid(xi)
-        (out * w).sum().backward()
+    def run(compile_flag: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # The tensor code, compiled or not (Triton: its own test).
+        with executing(ExecutionConfig(hashgrid="eager", compile=compile_flag)):
+            xi = x.clone().requires_grad_(True)
+            grid.table.grad = None
+            out = grid(xi)
+            (out * w).sum().backward()
         return out.detach(), xi.grad, grid.table.grad.clone()
 
-    eager, compiled = run("0"), run("1")
+    eager, compiled = run(False), run(True)
     for a, b in zip(eager, compiled, strict=True):
         assert torch.isfinite(b).all()
         assert (a - b).abs().max() <= 1e-4 * max(1.0, float(a.abs().max()))

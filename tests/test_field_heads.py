@@ -13,7 +13,8 @@ import pytest
 import torch
 from torch import nn
 
-from morpheus_core.geometry.field_heads import BACKEND_ENV, evaluate_heads, head_parameters
+from morpheus_core.execution import ExecutionConfig, executing
+from morpheus_core.geometry.field_heads import evaluate_heads, head_parameters
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField, _mlp
 
@@ -189,15 +190,15 @@ def small_field(seed: int) -> NerfField:
     return NerfField(cfg, generator=torch.Generator().manual_seed(seed)).to(DEVICE)
 
 
-def field_grads(field: NerfField, points: torch.Tensor, monkeypatch: pytest.MonkeyPatch, choice: str,
+def field_grads(field: NerfField, points: torch.Tensor, choice: str,
                 albedo_only: bool = False) -> tuple[list[torch.Tensor], dict[str, torch.Tensor | None]]:
-    monkeypatch.setenv(BACKEND_ENV, choice)
     field.zero_grad(set_to_none=True)
-    sample = field.query(points)
-    loss = (sample.albedo * torch.linspace(-1, 1, 3, device=DEVICE)).sum()
-    if not albedo_only:
-        loss = loss + (sample.density.log1p() * points[:, 0]).sum() + field.density(points * 0.5).sum()
-    loss.backward()
+    with executing(ExecutionConfig(field_mlp=choice)):  # type: ignore[arg-type]
+        sample = field.query(points)
+        loss = (sample.albedo * torch.linspace(-1, 1, 3, device=DEVICE)).sum()
+        if not albedo_only:
+            loss = loss + (sample.density.log1p() * points[:, 0]).sum() + field.density(points * 0.5).sum()
+        loss.backward()
     return [sample.density.detach(), sample.albedo.detach()], {n: p.grad for n, p in field.named_parameters()}
 
 
@@ -206,12 +207,12 @@ def test_field_query_and_gradients_match_eager(monkeypatch: pytest.MonkeyPatch, 
     """Through ``NerfField``: the hash table's gradient passes the kernels' feature gradient on."""
     field = small_field(10)
     points = (torch.rand(257, 3, generator=torch.Generator().manual_seed(11)) * 1.6 - 0.8).to(DEVICE)
-    want_out, want_grads = field_grads(field, points, monkeypatch, "eager", albedo_only)
+    want_out, want_grads = field_grads(field, points, "eager", albedo_only)
     launches = []
     backward = mlp_triton.heads_backward
     monkeypatch.setattr(mlp_triton, "heads_backward",
                         lambda *a: launches.append((a[3] is not None, a[4] is not None)) or backward(*a))
-    got_out, got_grads = field_grads(field, points, monkeypatch, "triton", albedo_only)
+    got_out, got_grads = field_grads(field, points, "triton", albedo_only)
     # The kernels ran, in reverse order of the forward: (density wanted, albedo wanted) per call.
     assert launches == ([(False, True)] if albedo_only else [(True, False), (True, True)])
     for got, want in zip(got_out, want_out, strict=True):
@@ -226,31 +227,29 @@ def test_field_query_and_gradients_match_eager(monkeypatch: pytest.MonkeyPatch, 
 
 
 def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``execution.field_mlp`` (``morpheus_core.execution``) picks the path, not the environment."""
     density, albedo = heads(32, 64, 3, seed=30)
     x = torch.randn(20, 32, device=DEVICE)
-    monkeypatch.setenv(BACKEND_ENV, "fast")
-    with pytest.raises(ValueError, match=f"{BACKEND_ENV} must be one of auto, triton, eager"):
-        evaluate_heads(x, density, albedo)
-    monkeypatch.setenv(BACKEND_ENV, "triton")
+    with pytest.raises(ValueError, match=r"execution\.field_mlp must be one of auto, triton, eager"):
+        ExecutionConfig(field_mlp="fast")  # type: ignore[arg-type]
     one_layer = _mlp(32, 64, 1, 3).to(DEVICE)  # not a shape the kernels take: the module, under any choice
-    assert_near(evaluate_heads(x, density, one_layer)[1], one_layer(x), 0.0)
+    with executing(ExecutionConfig(field_mlp="triton")):
+        assert_near(evaluate_heads(x, density, one_layer)[1], one_layer(x), 0.0)
 
     def refuse(*args, **kwargs):
         raise AssertionError("a Triton kernel ran on the eager path")
 
     monkeypatch.setattr(mlp_triton, "heads_forward", refuse)
-    monkeypatch.setenv(BACKEND_ENV, "eager")
-    assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
-    monkeypatch.delenv(BACKEND_ENV)  # unset means auto: the kernels on CUDA, the modules on the CPU
-    if CUDA:
-        with pytest.raises(AssertionError, match="a Triton kernel ran"):
-            evaluate_heads(x, density, albedo)
-    else:
+    with executing(ExecutionConfig(field_mlp="eager")):
         assert_near(evaluate_heads(x, density, albedo)[0], density(x), 0.0)
+    with executing(ExecutionConfig()):  # auto: the kernels on CUDA, the modules on the CPU
+        if CUDA:
+            with pytest.raises(AssertionError, match="a Triton kernel ran"):
+                evaluate_heads(x, density, albedo)
+        else:
+            assert_near(evaluate_heads(x, density, albedo)[1], albedo(x), 0.0)
     if not CUDA:
-        monkeypatch.setenv(BACKEND_ENV, "auto")  # on the CPU, auto keeps the modules
-        assert_near(evaluate_heads(x, density, albedo)[1], albedo(x), 0.0)
-        monkeypatch.setenv(BACKEND_ENV, "triton")
         monkeypatch.setenv("TRITON_INTERPRET", "0")
-        with pytest.raises(RuntimeError, match=f"{BACKEND_ENV}=triton but the Triton field-MLP kernels cannot run"):
+        with executing(ExecutionConfig(field_mlp="triton")), pytest.raises(
+                RuntimeError, match=r"execution\.field_mlp=triton but the Triton field-MLP kernels cannot run"):
             evaluate_heads(x, density, albedo)

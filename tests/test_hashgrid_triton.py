@@ -12,8 +12,8 @@ import os
 import pytest
 import torch
 
+from morpheus_core.execution import ExecutionConfig, apply_execution, executing
 from morpheus_core.geometry.hashgrid import (
-    BACKEND_ENV,
     HashGrid,
     HashGridConfig,
     _encode,
@@ -214,33 +214,27 @@ def test_cpu_keeps_the_eager_path(monkeypatch: pytest.MonkeyPatch) -> None:
 
     monkeypatch.setattr(hashgrid_triton, "encode_forward", refuse)
     monkeypatch.setattr(hashgrid_triton, "encode_backward", refuse)
-    for choice in (None, "auto", "eager"):
-        if choice is None:
-            monkeypatch.delenv(BACKEND_ENV, raising=False)
-        else:
-            monkeypatch.setenv(BACKEND_ENV, choice)
-        assert _triton_kernels(x, grid.table) is None
-        xi = x.clone().requires_grad_(True)
-        grid(xi).sum().backward()
-        assert xi.grad is not None and grid.table.grad is not None
-    monkeypatch.setenv(BACKEND_ENV, "fast")
-    with pytest.raises(ValueError, match=BACKEND_ENV):
-        _triton_kernels(x, grid.table)
+    for choice in ("auto", "eager"):
+        with executing(ExecutionConfig(hashgrid=choice)):  # type: ignore[arg-type]
+            assert _triton_kernels(x, grid.table) is None
+            xi = x.clone().requires_grad_(True)
+            grid(xi).sum().backward()
+            assert xi.grad is not None and grid.table.grad is not None
 
 
-def test_forcing_triton_where_it_cannot_run_names_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv(BACKEND_ENV, "triton")
+def test_forcing_triton_where_it_cannot_run_names_the_setting(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("TRITON_INTERPRET", "0")
     grid = HashGrid(mixed(2))
-    with pytest.raises(RuntimeError, match=f"{BACKEND_ENV}=triton"):
-        grid(torch.rand(10, 3))
-    # float64 (gradcheck) is not the kernels' business: the tensor code runs under either choice.
-    assert _triton_kernels(torch.rand(10, 3, dtype=torch.float64), grid.table.double()) is None
+    with executing(ExecutionConfig(hashgrid="triton")):
+        with pytest.raises(RuntimeError, match=r"execution\.hashgrid=triton"):
+            grid(torch.rand(10, 3))
+        # float64 (gradcheck) is not the kernels' business: the tensor code runs under either choice.
+        assert _triton_kernels(torch.rand(10, 3, dtype=torch.float64), grid.table.double()) is None
 
 
 @pytest.mark.skipif(CUDA, reason="the interpreter path is the CPU's")
-def test_forced_triton_through_hash_grid_module_under_the_interpreter(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``MORPHEUS_HASHGRID=triton`` with the interpreter: ``HashGrid`` forward and autograd backward match eager."""
+def test_forced_triton_through_hash_grid_module_under_the_interpreter() -> None:
+    """``execution.hashgrid=triton`` with the interpreter: ``HashGrid`` forward and autograd backward match eager."""
     grid = HashGrid(mixed(2), generator=torch.Generator().manual_seed(13))
     with torch.no_grad():
         grid.table.normal_(generator=torch.Generator().manual_seed(14))
@@ -249,38 +243,58 @@ def test_forced_triton_through_hash_grid_module_under_the_interpreter(monkeypatc
     w = torch.randn(100, grid.output_dim, generator=torch.Generator().manual_seed(16))
 
     def run(choice: str) -> tuple[torch.Tensor, ...]:
-        monkeypatch.setenv(BACKEND_ENV, choice)
-        xi = x.clone().requires_grad_(True)
-        grid.table.grad = None
-        out = grid(xi)
-        (out * w).sum().backward()
+        with executing(ExecutionConfig(hashgrid=choice)):  # type: ignore[arg-type]
+            xi = x.clone().requires_grad_(True)
+            grid.table.grad = None
+            out = grid(xi)
+            (out * w).sum().backward()
         return out.detach(), xi.grad, grid.table.grad.clone()
 
-    monkeypatch.setenv(BACKEND_ENV, "triton")
-    assert _triton_kernels(x, grid.table) is hashgrid_triton
+    with executing(ExecutionConfig(hashgrid="triton")):
+        assert _triton_kernels(x, grid.table) is hashgrid_triton
     for got, want in zip(run("triton"), run("eager"), strict=True):
         assert_near(got, want, 2e-6)
+
+
+@pytest.mark.skipif(CUDA, reason="the interpreter path is the CPU's")
+def test_applied_execution_settings_pick_the_hash_grid_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What ``apply_execution`` (a run's start-up) sets is what the encode reads on its next call;
+    the environment alias no longer matters once settings are applied."""
+    launches: list[int] = []
+    forward = hashgrid_triton.encode_forward
+    monkeypatch.setattr(hashgrid_triton, "encode_forward", lambda *a: launches.append(len(a[0])) or forward(*a))
+    grid = HashGrid(mixed(2), generator=torch.Generator().manual_seed(17))
+    x = torch.rand(30, 3, generator=torch.Generator().manual_seed(18))
+    previous = apply_execution(ExecutionConfig(hashgrid="triton"))
+    try:
+        monkeypatch.setenv("MORPHEUS_HASHGRID", "eager")
+        grid(x)
+        assert launches == [30]
+        apply_execution(ExecutionConfig(hashgrid="eager"))
+        grid(x)
+        assert launches == [30]
+    finally:
+        apply_execution(previous)
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not CUDA, reason="needs CUDA")
 @pytest.mark.parametrize("n", [1000, 37_123])
-def test_paper_grid_on_cuda_defaults_to_triton_and_matches_eager(n: int, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_paper_grid_on_cuda_defaults_to_triton_and_matches_eager(n: int) -> None:
     grid = HashGrid(HashGridConfig(), generator=torch.Generator().manual_seed(n)).cuda()
     with torch.no_grad():
         grid.table.normal_(0, 0.1, generator=torch.Generator(device="cuda").manual_seed(1))
     x = torch.rand(n, 3, generator=torch.Generator().manual_seed(n + 1)).cuda()
     w = torch.randn(n, grid.output_dim, generator=torch.Generator().manual_seed(n + 2)).cuda()
-    monkeypatch.delenv(BACKEND_ENV, raising=False)
-    assert _triton_kernels(x, grid.table) is hashgrid_triton
+    with executing(ExecutionConfig()):
+        assert _triton_kernels(x, grid.table) is hashgrid_triton
 
     def run(choice: str) -> tuple[torch.Tensor, ...]:
-        monkeypatch.setenv(BACKEND_ENV, choice)
-        monkeypatch.setenv("MORPHEUS_COMPILE", "0")
-        xi = x.clone().requires_grad_(True)
-        grid.table.grad = None
-        out = grid(xi)
-        (out * w).sum().backward()
+        with executing(ExecutionConfig(hashgrid=choice, compile=False)):  # type: ignore[arg-type]
+            xi = x.clone().requires_grad_(True)
+            grid.table.grad = None
+            out = grid(xi)
+            (out * w).sum().backward()
         return out.detach(), xi.grad, grid.table.grad.clone()
 
     for got, want in zip(run("auto"), run("eager"), strict=True):

@@ -3,8 +3,9 @@
 ``evaluate_heads`` runs both MLPs on the same hash-grid features. On CUDA (where Triton imports)
 that is ``mlp_triton``'s two kernels, forward and backward; elsewhere, and for inputs those
 kernels do not take, the ``nn.Sequential`` modules themselves (the CPU path and the reference).
-``MORPHEUS_FIELD_MLP`` picks, like ``MORPHEUS_HASHGRID`` (``triton_support.choose``): ``auto``
-(the kernels on CUDA; the default), ``triton`` (insist) or ``eager`` (the modules everywhere).
+``execution.field_mlp`` (``morpheus_core.execution``, alias ``MORPHEUS_FIELD_MLP``) picks, like
+``execution.hashgrid`` (``triton_support.choose``): ``auto`` (the kernels on CUDA; the default),
+``triton`` (insist) or ``eager`` (the modules everywhere).
 The kernels' TF32 products were checked against the fp32 modules on all 8 synthetic scenes × 3
 seeds (``benchmarks/results/heads_quality_h200.md``: every scene inside the seed spread). The
 parameters stay the modules' own, so checkpoints, optimisers and parameter groups do not see which
@@ -19,10 +20,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from morpheus_core.execution import current_execution
 from morpheus_core.triton_support import choose
-
-BACKEND_ENV = "MORPHEUS_FIELD_MLP"
-DEFAULT = "auto"
 
 
 def head_parameters(mlp: nn.Module) -> list[Tensor] | None:
@@ -53,7 +52,7 @@ def _kernels(feats: Tensor, mlps: list[nn.Module]) -> tuple[ModuleType, list[lis
         heads.extend(head_parameters(m) for m in mlps)
         return all(h is not None for h in heads) and load().supports(feats, heads)  # type: ignore[arg-type]
 
-    kernels = choose(BACKEND_ENV, feats.device, supported, load, "field-MLP", DEFAULT)
+    kernels = choose(current_execution().field_mlp, "execution.field_mlp", feats.device, supported, load, "field-MLP")
     return (kernels, heads) if kernels is not None else None  # type: ignore[return-value]
 
 

@@ -14,11 +14,12 @@ Kernels: on CUDA the encode runs as fused Triton kernels (``hashgrid_triton``: o
 level in registers, table gradient by atomics, one per run of points in a cell on the dense levels,
 the same arithmetic as the code here), when Triton imports; otherwise (and for float64 inputs) the
 pure tensor functions below, compiled on CUDA (``compiled_for``). The CPU always runs the eager code
-below, unchanged. The environment variable ``MORPHEUS_HASHGRID`` picks: ``auto`` (the default:
-Triton on CUDA where available), ``triton`` (insist: an error where Triton cannot run, e.g. a CPU
-without ``TRITON_INTERPRET=1``), ``eager`` (the tensor code everywhere: debugging, the benchmarks'
-"before"). It is an environment variable, not a config field, because it does not change results
-beyond float rounding and a config field would change the config hashes of existing stores.
+below, unchanged. ``execution.hashgrid`` (``morpheus_core.execution``, alias ``MORPHEUS_HASHGRID``)
+picks: ``auto`` (the default: Triton on CUDA where available), ``triton`` (insist: an error where
+Triton cannot run, e.g. a CPU without ``TRITON_INTERPRET=1``), ``eager`` (the tensor code
+everywhere: debugging, the benchmarks' "before"). It is a process-wide execution setting, not a
+stage config field, because it does not change results beyond float rounding and must not change
+the fingerprints of existing stores.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.devices import compiled_for
+from morpheus_core.execution import current_execution
 from morpheus_core.triton_support import choose
 
 PRIMES = (1, 2654435761, 805459861)
@@ -193,18 +195,17 @@ def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask:
     return grad_x, grad_table
 
 
-BACKEND_ENV = "MORPHEUS_HASHGRID"
-
-
 def _triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
-    """The Triton kernel module when this encode should use it (``triton_support.choose``), else None."""
+    """The Triton kernel module when this encode should use it (``execution.hashgrid``,
+    ``triton_support.choose``), else None."""
 
     def load() -> ModuleType:
         from morpheus_core.geometry import hashgrid_triton
 
         return hashgrid_triton
 
-    return choose(BACKEND_ENV, x.device, lambda: load().supports(x, table), load, "hash-grid")
+    choice = current_execution().hashgrid
+    return choose(choice, "execution.hashgrid", x.device, lambda: load().supports(x, table), load, "hash-grid")
 
 
 class _HashEncode(torch.autograd.Function):

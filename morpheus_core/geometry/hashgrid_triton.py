@@ -25,7 +25,7 @@ clamps to [0, 1]).
 
 The per-level device functions are in ``hashgrid_triton_levels``; the kernels and the host side here.
 Triton reads ``TRITON_INTERPRET`` when ``@triton.jit`` runs, i.e. when this module is imported:
-``hashgrid.py`` imports it lazily (only on CUDA, or when ``MORPHEUS_HASHGRID=triton``), and the CPU
+``hashgrid.py`` imports it lazily (only on CUDA, or under ``execution.hashgrid=triton``), and the CPU
 tests set ``TRITON_INTERPRET=1`` before importing it.
 """
 

@@ -20,7 +20,7 @@ GPU time). Here a block of rows goes through a whole head in registers:
 Products are TF32 (inputs rounded to 10-bit mantissas, fp32 accumulation), whatever PyTorch's
 ``allow_tf32`` says: tcnn runs these MLPs in fp16, and on the H200 the fp32-exact alternative
 (``tf32x3``) was slower than the eager modules (``benchmarks/results/field_speed_h200_heads.md``),
-so the kernels would have no reason to exist in full fp32. ``MORPHEUS_FIELD_MLP=eager`` gives the fp32
+so the kernels would have no reason to exist in full fp32. ``execution.field_mlp=eager`` gives the fp32
 modules back. The interpreter computes in fp32. Sizes: widths up to 128, outputs up to 16, padded
 to powers of two ≥ 16 with masked loads (no packed copies of the weights).
 """

@@ -8,6 +8,11 @@
 
 Everything is overridable by dotted path (``ops.config.tree.apply_overrides``), e.g.
 ``--set texture.guidance.k2d=0`` (the paper's Base row) or ``--set nerf.loop.steps=2000``.
+
+``execution`` (``morpheus_core.execution.ExecutionConfig``) is how the kernels run, not what they
+compute: no stage's fingerprint holds it, and a run applies it process-wide when it starts
+(``ops.engine.pipeline.run_setup``). Its defaults come from the environment aliases
+(``MORPHEUS_HASHGRID``, ``MORPHEUS_FIELD_MLP``, ``MORPHEUS_COMPILE``).
 """
 
 from __future__ import annotations
@@ -17,12 +22,13 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
+from morpheus_core.execution import ExecutionConfig
 from morpheus_core.export.uv_bake import BakeConfig
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import TextureFieldConfig
-from ops.config.tree import apply_overrides
+from ops.config.tree import ConfigError, apply_overrides
 from ops.engine.loop import LoopConfig
 from ops.engine.priors import PriorsConfig
 from ops.stages.bake import BakeStageConfig
@@ -33,6 +39,15 @@ from ops.stages.reference import ReferenceStageConfig
 from ops.stages.texture import TextureStageConfig
 
 log = logging.getLogger("morpheus3d")
+
+
+def execution_defaults() -> ExecutionConfig:
+    """The execution settings' defaults from their environment aliases; a bad value is a
+    ``ConfigError`` naming the variable and the key, as a bad ``--set`` names its key."""
+    try:
+        return ExecutionConfig.from_env()
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
 
 
 @dataclass(frozen=True)
@@ -48,6 +63,9 @@ class PipelineConfig:
     texture: TextureStageConfig = field(default_factory=TextureStageConfig)
     bake: BakeStageConfig = field(default_factory=BakeStageConfig)
     qa: QAConfig = field(default_factory=QAConfig)
+    execution: ExecutionConfig = field(default_factory=execution_defaults)
+    """How the kernels run (Triton or eager, torch.compile): results differ by rounding only, so no stage's
+    fingerprint holds it and changing it reuses cached outputs."""
 
 
 def paper() -> PipelineConfig:

@@ -130,7 +130,11 @@ def override(config: T, path: str, value: Any) -> T:
     if rest:
         if not dataclasses.is_dataclass(current):
             raise ConfigError(f"{path}: {head!r} is a value, not a group of settings")
-        new = override(current, rest, value)
+        try:
+            new = override(current, rest, value)
+        except ConfigError as exc:
+            # The nested call knows only the path below ``head``: the message names the whole key.
+            raise ConfigError(f"{head}.{exc}") from exc
     else:
         new = _coerce(value, _hints(type(config))[head], path)
     try:

@@ -14,8 +14,8 @@ import json
 import logging
 import time
 import traceback
-from collections.abc import Callable, Iterable
-from contextlib import AbstractContextManager, nullcontext
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, is_dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -25,6 +25,7 @@ from assets_store.hashing import bytes_sha256, config_hash, file_sha256
 from assets_store.manifest import Fingerprint, Manifest
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
+from morpheus_core.execution import executing
 from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
 from ops.engine.early_stop import whole_schedule_record
@@ -72,6 +73,12 @@ class PhotoOutcome:
             if s.stage == stage and s.manifest is not None:
                 return s.manifest.metrics.get(name)
         return None
+
+
+def stage_config_record(config: dict[str, Any]) -> dict[str, Any]:
+    """A stage's config (``StageWork.config``) as plain JSON data: what its manifest records and its
+    fingerprint's config hash is of."""
+    return json.loads(json.dumps(to_dict(config), default=str))
 
 
 def output_digest(manifest: Manifest) -> str:
@@ -189,7 +196,7 @@ class PhotoRun:
         key = ("config_hash", stage,
                tuple((k, id(v) if is_dataclass(v) else v) for k, v in sorted(work.config.items())))
         if key not in self.memo:
-            record = json.loads(json.dumps(to_dict(work.config), default=str))
+            record = stage_config_record(work.config)
             self.memo[key] = (config_hash(record), config_hash(whole_schedule_record(record)))
         full, whole = self.memo[key]
         inputs = {**inputs, **work.inputs}
@@ -216,7 +223,7 @@ class PhotoRun:
 
     def config_record(self, planned: PlannedStage) -> dict[str, Any]:
         """The stage's config as plain JSON data: what the manifest records and the hash is of."""
-        return json.loads(json.dumps(to_dict(planned.work.config), default=str))
+        return stage_config_record(planned.work.config)
 
     def run(self, stage: str) -> Manifest:
         """Run ``stage`` (or reuse its cached output); raises when the stage fails."""
@@ -307,8 +314,8 @@ def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
     (the outcome says why)."""
     last = STAGE_IDS.index(check_stage_id(until, "until"))
     store.cleanup_staging(key)
-    with leased_device(cfg.device) as (device, lease):
-        run = PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, init_mesh, progress, suites)
+    with run_setup(cfg) as (leased, lease):
+        run = PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites)
         for stage in [s for s in run.stages if STAGE_IDS.index(s) <= last]:
             try:
                 run.run(stage)
@@ -327,8 +334,8 @@ def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: 
     Cached when its fingerprint matches, resumed from its newest checkpoint when one exists.
     Raises on failure (``MissingUpstreamError`` when an input stage has no finished output), so
     an orchestrator can retry; finished outputs and checkpoints stay in place."""
-    with stage_device(cfg, stage) as (device, lease):
-        run = PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, init_mesh, progress, suites)
+    with run_setup(cfg, stage) as (leased, lease):
+        run = PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites)
         run.run(stage)
     record_lease(run.outcome.stages[-1:], lease)
     return run.outcome.stages[-1]
@@ -356,6 +363,12 @@ def record_lease(outcomes: Iterable[StageOutcome], lease: GpuLease | None) -> No
         outcome.lease = None if lease is None else lease.describe()
 
 
-def stage_device(cfg: PipelineConfig, stage: str) -> AbstractContextManager[tuple[str, GpuLease | None]]:
-    """The lease a single stage runs under: none for the CPU-only reference stage."""
-    return nullcontext((cfg.device, None)) if stage == "reference" else leased_device(cfg.device)
+@contextmanager
+def run_setup(cfg: PipelineConfig, stage: str | None = None) -> Iterator[tuple[PipelineConfig, GpuLease | None]]:
+    """Where every run starts (``run_photo``, ``run_stage`` and their batch forms): ``cfg.execution``
+    applied process-wide for the run (the kernels read it, ``morpheus_core.execution``; the previous
+    settings come back after it), and the device leased (``ops.engine.gpu_lease``; none for the
+    CPU-only reference stage run alone). Yields ``cfg`` on the leased device, and the lease."""
+    lease_cm = nullcontext((cfg.device, None)) if stage == "reference" else leased_device(cfg.device)
+    with executing(cfg.execution), lease_cm as (device, lease):
+        yield replace(cfg, device=device), lease

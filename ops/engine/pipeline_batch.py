@@ -9,14 +9,12 @@ import shutil
 import time
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import replace
 from pathlib import Path
 
 from assets_store.hashing import bytes_sha256
 from assets_store.store import StageWriter, Store
 from ops.config.presets import PipelineConfig
 from ops.engine.batch import run_jobs
-from ops.engine.gpu_lease import leased_device
 from ops.engine.pipeline import (
     PhotoOutcome,
     PhotoRun,
@@ -24,7 +22,7 @@ from ops.engine.pipeline import (
     StageOutcome,
     check_stage_id,
     record_lease,
-    stage_device,
+    run_setup,
 )
 from ops.engine.priors import PriorSuite
 from ops.engine.progress import ProgressEvent, ProgressFn
@@ -112,8 +110,7 @@ def run_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineCon
     last = STAGE_IDS.index(check_stage_id(until, "until"))
     for _, key in photos:
         store.cleanup_staging(key)
-    with leased_device(cfg.device) as (device, lease):
-        leased = replace(cfg, device=device)
+    with run_setup(cfg) as (leased, lease):
         runs = [PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites) for photo, key in photos]
         for stage in STAGE_IDS[:last + 1]:
             live = [r for r in runs if r.outcome.error is None and stage in r.stages]
@@ -130,9 +127,8 @@ def run_stage_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: Pipel
     calls). Per key: the stage's outcome, or the exception that ``run_stage`` would have raised for
     that photo alone. A batch is resumed from its checkpoints only when re-run with the same photos."""
     check_stage_id(stage)
-    with stage_device(cfg, stage) as (device, lease):
-        runs = [PhotoRun(Path(photo), key, store, replace(cfg, device=device), preset, None, progress, None)
-                for photo, key in photos]
+    with run_setup(cfg, stage) as (leased, lease):
+        runs = [PhotoRun(Path(photo), key, store, leased, preset, None, progress, None) for photo, key in photos]
         _run_stage_together(runs, stage)
     for run in runs:
         record_lease(run.outcome.stages[-1:], lease)
