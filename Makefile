@@ -92,9 +92,13 @@ postgres:
 	  fi; \
 	fi
 
+# Workers for pytest-xdist: one per core; a test file stays on one worker (--dist loadfile), so a
+# module's shared fixture (e.g. the draft run of tests/test_pipeline.py) is built once. TEST_WORKERS=0:
+# one process, in file order. The slowest tests and why: docs/testing.md.
+TEST_WORKERS ?= auto
 test: $(STAMP) browser postgres
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
 
 doctor: $(STAMP)
 	$(VENV)/bin/morpheus3d doctor
