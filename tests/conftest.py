@@ -14,7 +14,16 @@ from morpheus_core.priors.image2d import Image2DPrior, Image2DSettings
 from morpheus_core.priors.registry import ModelRegistry
 from morpheus_core.priors.zero123 import Zero123Prior
 from tests.helpers import RES_2D
+from tests.seeds import TEST_SEED_ENV, seed_session
 from tests.tiny_models import write_all
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    seed_session()  # before xdist starts its workers: they inherit the seed through the environment
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    return f"fresh test seeds from {TEST_SEED_ENV}={os.environ[TEST_SEED_ENV]} (set it to draw the same ones again)"
 
 
 @pytest.fixture(autouse=True)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.findings import FINDINGS, Finding, findings_markdown, judge, judge_all, merge_findings
+from tests.seeds import fresh_seed
 
 SCHEMA = {"finding", "metric", "a", "b", "delta", "spread", "seeds", "size", "verdict"}
 ROOT = Path(__file__).resolve().parent.parent
@@ -26,7 +27,7 @@ def _by_seed(rows: dict[str, float], noise: float, seed: int) -> dict[int, list[
     return {s: _records(rng, rows, noise) for s in range(3)}
 
 
-@pytest.mark.parametrize("seed", [random.randrange(2**31) for _ in range(3)])
+@pytest.mark.parametrize("seed", [fresh_seed() for _ in range(3)])
 def test_a_clear_margin_reproduces_and_the_reverse_refutes(seed: int) -> None:
     claim = Finding("b beats a", ("a",), ("b",), +1, "test")
     up = judge(claim, _by_seed({"a": 20.0, "b": 22.0}, 0.05, seed), "novel_psnr", "t")
@@ -36,7 +37,7 @@ def test_a_clear_margin_reproduces_and_the_reverse_refutes(seed: int) -> None:
     assert up["a"] == pytest.approx(21.5, abs=0.2) and up["b"] == pytest.approx(23.5, abs=0.2)  # scene offsets
 
 
-@pytest.mark.parametrize("seed", [random.randrange(2**31) for _ in range(3)])
+@pytest.mark.parametrize("seed", [fresh_seed() for _ in range(3)])
 def test_a_margin_inside_the_seed_spread_is_inconclusive(seed: int) -> None:
     claim = Finding("b beats a", ("a",), ("b",), +1, "test")
     row = judge(claim, _by_seed({"a": 20.0, "b": 20.05}, 1.0, seed), "novel_psnr", "t")

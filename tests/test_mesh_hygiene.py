@@ -4,7 +4,6 @@ named in the failure message, plus fixed seeds); and the bake stage recording wh
 
 from __future__ import annotations
 
-import secrets
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +26,9 @@ from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import save_module
 from ops.stages.bake import ASSET_GLB, BakeStageConfig, bake_asset
 from ops.stages.dmtet import MESH_FILE, TEXTURE_FILE, save_mesh
+from tests.seeds import fresh_seed
 
-FRESH = secrets.randbits(31)
+FRESH = fresh_seed()
 SEEDS = [0, 1, FRESH]
 
 
