@@ -92,10 +92,10 @@ postgres:
 	  fi; \
 	fi
 
-# Workers for pytest-xdist: one per core; a test file stays on one worker (--dist loadfile), so a
-# module's shared fixture (e.g. the draft run of tests/test_pipeline.py) is built once. TEST_WORKERS=0:
-# one process, in file order. The slowest tests and why: docs/testing.md.
-TEST_WORKERS ?= auto
+# Workers for pytest-xdist (TEST_WORKERS=auto: one per core; a test file stays on one worker, so a
+# module's shared fixture is built once). Default 0, one process: on 2 cores two workers measured
+# slower (20.2 vs 16.9 min; torch's threads oversubscribe the cores). Timings: docs/testing.md.
+TEST_WORKERS ?= 0
 test: $(STAMP) browser postgres
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
