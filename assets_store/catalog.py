@@ -52,16 +52,16 @@ import pyarrow.parquet as pq
 from assets_store.atomic import atomic_write
 from assets_store.catalog_compaction import CatalogCompaction
 from assets_store.catalog_files import (
-    _THREADS,
     PART_PREFIX,
+    READ_THREADS,
     CatalogError,
-    _compacts,
-    _list_data_files,
-    _new_name,
-    _open,
-    _read_or_error,
-    _replaces,
-    _unify,
+    compact_names,
+    list_data_files,
+    new_file_name,
+    open_file,
+    read_or_error,
+    replaced_names,
+    unify_tables,
 )
 from assets_store.columns import TIMESTAMP, typed_table
 from assets_store.fsutil import fsync_dir
@@ -139,7 +139,7 @@ class Catalog(CatalogCompaction):
             table = tables[day]
             directory = self.day_dir(day)
             new_dir = not directory.is_dir()
-            path = directory / _new_name(PART_PREFIX)
+            path = directory / new_file_name(PART_PREFIX)
             atomic_write(path, lambda tmp, table=table: pq.write_table(table, str(tmp)))
             # The rename is durable only once the directory entry is: a power cut must not undo an append
             # the caller was told succeeded.
@@ -167,14 +167,14 @@ class Catalog(CatalogCompaction):
 
     def _plan_day(self, day_dir: Path) -> tuple[set[str], list[Path], list[tuple[Path, str]]]:
         """(compact names seen, live files to read, skipped) for one day; FileNotFoundError: list again."""
-        names = _list_data_files(day_dir)
-        compacts = _compacts(names)
+        names = list_data_files(day_dir)
+        compacts = compact_names(names)
         replaced: set[str] = set()
         skipped = []
         for name in sorted(compacts):
             try:
-                with _open(day_dir / name) as pf:
-                    replaced |= _replaces(pf)
+                with open_file(day_dir / name) as pf:
+                    replaced |= replaced_names(pf)
             except FileNotFoundError:
                 raise
             except Exception as exc:  # a corrupt merged file: its rows are lost to readers, say so
@@ -201,7 +201,7 @@ class Catalog(CatalogCompaction):
                 except FileNotFoundError:
                     retry.append(day)
             jobs = [(day, path) for day, plan in plans.items() for path in plan[1]]
-            results = list(pool.map(lambda path: _read_or_error(path, columns), [p for _, p in jobs]))
+            results = list(pool.map(lambda path: read_or_error(path, columns), [p for _, p in jobs]))
             by_day: dict[dt.date, list[tuple[Path, pa.Table | BaseException]]] = {d: [] for d in plans}
             for (day, path), res in zip(jobs, results, strict=True):
                 by_day[day].append((path, res))
@@ -211,7 +211,7 @@ class Catalog(CatalogCompaction):
                 lost = any(isinstance(r, FileNotFoundError) for _, r in got)
                 # A compaction published between our listing and now: the files we read may overlap the
                 # merged file, or miss one it replaced; either way read the day again.
-                changed = _compacts(_list_data_files(self.day_dir(day))) != compacts_before
+                changed = compact_names(list_data_files(self.day_dir(day))) != compacts_before
                 if lost or changed:
                     retry.append(day)
                     continue
@@ -244,11 +244,11 @@ class Catalog(CatalogCompaction):
         read_cols = None
         if wanted is not None:
             read_cols = wanted + ([CREATED_AT] if since_ts is not None and CREATED_AT not in wanted else [])
-        with ThreadPoolExecutor(_THREADS) as pool:
+        with ThreadPoolExecutor(READ_THREADS) as pool:
             tables, skipped = self._read_day_files(days, read_cols, pool)
         # Read order: day, then file name (write time), so equal timestamps resolve to the later write.
         tables.sort(key=lambda pt: (pt[0].parent.name, pt[0].name))
-        table, files, conflicts = _unify(tables)
+        table, files, conflicts = unify_tables(tables)
         skipped.extend(conflicts)
         if table is None:
             table = pa.table({})

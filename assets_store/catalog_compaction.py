@@ -20,17 +20,17 @@ import pyarrow.parquet as pq
 
 from assets_store.atomic import atomic_write
 from assets_store.catalog_files import (
-    _THREADS,
     COMPACT_PREFIX,
+    READ_THREADS,
     REPLACES_KEY,
     CatalogError,
-    _compacts,
-    _list_data_files,
-    _new_name,
-    _open,
-    _read_or_error,
-    _replaces,
-    _unify,
+    compact_names,
+    list_data_files,
+    new_file_name,
+    open_file,
+    read_or_error,
+    replaced_names,
+    unify_tables,
 )
 from assets_store.fsutil import fsync_dir
 
@@ -92,7 +92,7 @@ class CatalogCompaction:
             if not locked:
                 result.busy = True
                 return result
-            with ThreadPoolExecutor(_THREADS) as pool:
+            with ThreadPoolExecutor(READ_THREADS) as pool:
                 for day in self.days():
                     if day < before:
                         self._compact_day(day, min_files, retention_s, result, pool)
@@ -104,12 +104,12 @@ class CatalogCompaction:
         directory = self.day_dir(day)
         now = time.time()
         self._remove_stale_temporaries(directory, now)
-        names = _list_data_files(directory)  # under the lock only appends add files: this list is complete
+        names = list_data_files(directory)  # under the lock only appends add files: this list is complete
         replaced: dict[str, float] = {}  # replaced name -> publication time of its merged file
-        for name in sorted(_compacts(names)):
+        for name in sorted(compact_names(names)):
             try:
-                with _open(directory / name) as pf:
-                    covered = _replaces(pf)
+                with open_file(directory / name) as pf:
+                    covered = replaced_names(pf)
                 published = (directory / name).stat().st_mtime
                 for old in covered:
                     replaced[old] = max(replaced.get(old, 0.0), published)
@@ -128,12 +128,12 @@ class CatalogCompaction:
         if len(live) >= max(min_files, 2):  # one file is already as merged as it gets
             tables = []
             paths = [directory / name for name in live]
-            for path, res in zip(paths, pool.map(_read_or_error, paths), strict=True):
+            for path, res in zip(paths, pool.map(read_or_error, paths), strict=True):
                 if isinstance(res, BaseException):
                     result.skipped.append((path, f"unreadable, left in place: {res}"))
                 else:
                     tables.append((path, res))
-            merged, inputs, conflicts = _unify(tables)
+            merged, inputs, conflicts = unify_tables(tables)
             result.skipped.extend((p, f"{why}; left in place") for p, why in conflicts)
             if merged is not None and len(inputs) >= min_files:
                 merged_paths = set(inputs)
@@ -143,9 +143,9 @@ class CatalogCompaction:
                 # (names are unique), so they need not be listed.
                 covers = {p.name for p in inputs} | (replaced.keys() & names)
                 merged = merged.replace_schema_metadata({REPLACES_KEY: json.dumps(sorted(covers)).encode()})
-                path = directory / _new_name(COMPACT_PREFIX)
+                path = directory / new_file_name(COMPACT_PREFIX)
                 atomic_write(path, lambda tmp: pq.write_table(merged, str(tmp)))
-                with _open(path) as pf:
+                with open_file(path) as pf:
                     written = pf.metadata.num_rows
                 if written != expected:
                     path.unlink()

@@ -302,14 +302,14 @@ def test_a_listing_that_raced_a_compaction_is_detected_and_the_day_read_again(tm
     catalog.compact(before=dt.date(2026, 3, 2), retention_s=3600)
     parts[0].unlink()  # as a retention-0 compaction would, right after publishing the merged file
     stale = {p.name for p in parts[1:]}  # the listing that missed both the merged file and the deletion
-    real = catalog_module._list_data_files
+    real = catalog_module.list_data_files
     calls = []
 
     def racing_listing(day_dir: Path) -> set[str]:
         calls.append(day_dir)
         return set(stale) if len(calls) == 1 else real(day_dir)
 
-    monkeypatch.setattr(catalog_module, "_list_data_files", racing_listing)
+    monkeypatch.setattr(catalog_module, "list_data_files", racing_listing)
     ids = catalog.read()["run_id"].to_pylist()
     assert sorted(ids) == sorted(f"p{i}-{j}" for i in range(4) for j in range(3))
     assert len(calls) >= 3, "the day was not listed again"
