@@ -98,7 +98,7 @@ def bench_kernels(n: int, iters: int, warmup: int) -> dict[str, float]:
     from morpheus_core.geometry import hashgrid_triton as kernels
 
     grid = make_grid(0)
-    tables, mask, table = grid._level_tables(), grid.level_mask, grid.table.detach()
+    tables, mask, table = grid.level_tables(), grid.level_mask, grid.table.detach()
     x = torch.rand(n, 3, device="cuda", generator=torch.Generator(device="cuda").manual_seed(1))
     grad_out = torch.randn(n, grid.output_dim, device="cuda", generator=torch.Generator(device="cuda").manual_seed(2))
     calls = {

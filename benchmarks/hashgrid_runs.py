@@ -36,7 +36,7 @@ import torch
 from assets_store.atomic import atomic_write_text
 from benchmarks.hashgrid_kernel import cuda_timed, make_grid
 from morpheus_core.geometry import hashgrid_triton as kernels
-from morpheus_core.geometry.hashgrid import _encode_backward
+from morpheus_core.geometry.hashgrid import eager_encode_backward
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COMMAND = "python -m benchmarks.hashgrid_runs"
@@ -74,13 +74,13 @@ def point_sets() -> dict[str, torch.Tensor]:
 
 def measure(iters: int, warmup: int) -> list[dict[str, object]]:
     grid = make_grid(0, table_std=0.1)
-    tables, mask, table = grid._level_tables(), grid.level_mask, grid.table.detach()
+    tables, mask, table = grid.level_tables(), grid.level_mask, grid.table.detach()
     rows: list[dict[str, object]] = []
     default = kernels.RUN_REDUCTION
     for name, x in point_sets().items():
         grad_out = torch.randn(x.shape[0], grid.output_dim, device="cuda",
                                generator=torch.Generator(device="cuda").manual_seed(2))
-        _, want = _encode_backward(x, table, tables, mask, grad_out, False, True)
+        _, want = eager_encode_backward(x, table, tables, mask, grad_out, False, True)
         for mode in MODES:
             kernels.RUN_REDUCTION = mode
             _, got = kernels.encode_backward(x, table, tables, mask, grad_out, False, True)

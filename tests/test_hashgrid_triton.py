@@ -1,4 +1,4 @@
-"""Triton hash-grid kernels against the eager encoder (``_encode`` / ``_encode_backward``).
+"""Triton hash-grid kernels against the eager encoder (``eager_encode_forward`` / ``eager_encode_backward``).
 
 Without CUDA the kernels run under Triton's CPU interpreter. Triton reads ``TRITON_INTERPRET``
 when ``@triton.jit`` runs — when ``hashgrid_triton`` is imported — so it is set before that import.
@@ -16,10 +16,10 @@ from morpheus_core.execution import ExecutionConfig, apply_execution, executing
 from morpheus_core.geometry.hashgrid import (
     HashGrid,
     HashGridConfig,
-    _encode,
-    _encode_backward,
-    _LevelTables,
-    _triton_kernels,
+    LevelTables,
+    eager_encode_backward,
+    eager_encode_forward,
+    triton_kernels,
 )
 
 CUDA = torch.cuda.is_available()
@@ -47,9 +47,9 @@ def integer_scales(features: int) -> HashGridConfig:
 SPECIAL = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.5], [0.0, 1.0, 1.0], [0.5, 0.5, 0.5], [0.25, 1.0, 0.0]]
 
 
-def inputs(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, _LevelTables]:
+def inputs(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, LevelTables]:
     g = torch.Generator().manual_seed(seed)
-    tables = _LevelTables(config, DEVICE)
+    tables = LevelTables(config, DEVICE)
     table = torch.randn(int(tables.rows.sum()), config.n_features_per_level, generator=g)
     x = torch.rand(n, 3, generator=g)
     x[: len(SPECIAL)] = torch.tensor(SPECIAL)
@@ -74,11 +74,11 @@ def compare(config: HashGridConfig, level_mask: torch.Tensor, n: int = 160, seed
         table = torch.cat([table] + [torch.randn(table.shape, generator=g).to(DEVICE) for _ in range(objects - 1)])
         base = (torch.randint(0, objects, (n,), generator=g) * (table.shape[0] // objects)).to(DEVICE)
     mask = level_mask.to(DEVICE)
-    ref = _encode(x, table, tables, mask, base)
+    ref = eager_encode_forward(x, table, tables, mask, base)
     out = hashgrid_triton.encode_forward(x, table, tables, mask, base)
     assert_near(out, ref, 2e-6)
     grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(seed + 1)).to(DEVICE)
-    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True, base)
+    want_gx, want_gt = eager_encode_backward(x, table, tables, mask, grad_out, True, True, base)
     got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True, base)
     assert_near(got_gx, want_gx, 2e-6)
     assert_near(got_gt, want_gt, 2e-6)
@@ -97,7 +97,7 @@ def test_stacked_objects_match_eager() -> None:
     compare(integer_scales(4), (torch.arange(4) < 3).float(), n=200, seed=4, objects=2)
 
 
-def clustered(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, _LevelTables]:
+def clustered(config: HashGridConfig, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, LevelTables]:
     """Points in runs that share cells, as the NeRF stage's samples come: sorted along x (neighbours
     close), runs of one repeated point (one across the 128-lane block edge, one up to the last point,
     in the cell at the origin, where the kernel's masked loads past the end also land)."""
@@ -121,12 +121,12 @@ def test_run_reduction_matches_eager_on_clustered_points(mode: str, monkeypatch:
     base = ((torch.arange(n) // 7) % objects * (table.shape[0] // objects)).to(DEVICE)  # switches inside runs
     mask = (torch.arange(config.n_levels) < 4).float().to(DEVICE)
     grad_out = torch.randn(n, config.output_dim, generator=torch.Generator().manual_seed(22)).to(DEVICE)
-    want_gx, want_gt = _encode_backward(x, table, tables, mask, grad_out, True, True, base)
+    want_gx, want_gt = eager_encode_backward(x, table, tables, mask, grad_out, True, True, base)
     got_gx, got_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True, base)
     assert_near(got_gx, want_gx, 2e-6)
     assert_near(got_gt, want_gt, 2e-6)
     _, only_gt = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, False, True)
-    assert_near(only_gt, _encode_backward(x, table, tables, mask, grad_out, False, True)[1], 2e-6)
+    assert_near(only_gt, eager_encode_backward(x, table, tables, mask, grad_out, False, True)[1], 2e-6)
 
 
 def test_unknown_run_reduction_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -141,7 +141,7 @@ def test_unknown_run_reduction_is_refused(monkeypatch: pytest.MonkeyPatch) -> No
                                                 (mixed, 1), (integer_scales, 8)])
 def test_forward_and_gradients_match_eager(make, features: int) -> None:
     config = make(features)
-    tables = _LevelTables(config, DEVICE)
+    tables = LevelTables(config, DEVICE)
     assert 0 < tables.n_dense < config.n_levels  # both kinds of level occur
     compare(config, torch.ones(config.n_levels), seed=features)
 
@@ -149,16 +149,17 @@ def test_forward_and_gradients_match_eager(make, features: int) -> None:
 def test_unit_cube_corners_wrap_like_eager() -> None:
     """x = 0 and x = 1 on every axis: at integer scales the upper corner of x = 1 lies past the grid."""
     config = integer_scales(2)
-    tables = _LevelTables(config, DEVICE)
+    tables = LevelTables(config, DEVICE)
     corners = torch.tensor([[(c >> d) & 1 for d in range(3)] for c in range(8)], dtype=torch.float32)
     g = torch.Generator().manual_seed(5)
     table = torch.randn(int(tables.rows.sum()), 2, generator=g).to(DEVICE)
     mask = torch.ones(config.n_levels, device=DEVICE)
     x = corners.to(DEVICE)
-    assert_near(hashgrid_triton.encode_forward(x, table, tables, mask), _encode(x, table, tables, mask), 1e-6)
+    features = eager_encode_forward(x, table, tables, mask)
+    assert_near(hashgrid_triton.encode_forward(x, table, tables, mask), features, 1e-6)
     grad_out = torch.randn(8, config.output_dim, generator=g).to(DEVICE)
     got = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, True, True)
-    want = _encode_backward(x, table, tables, mask, grad_out, True, True)
+    want = eager_encode_backward(x, table, tables, mask, grad_out, True, True)
     for a, b in zip(got, want, strict=True):
         assert_near(a, b, 1e-6)
 
@@ -184,7 +185,7 @@ def test_unwanted_gradients_are_none(want_x: bool, want_table: bool) -> None:
     mask = torch.ones(config.n_levels, device=DEVICE)
     grad_out = torch.randn(64, config.output_dim, generator=torch.Generator().manual_seed(10)).to(DEVICE)
     got = hashgrid_triton.encode_backward(x, table, tables, mask, grad_out, want_x, want_table)
-    want = _encode_backward(x, table, tables, mask, grad_out, want_x, want_table)
+    want = eager_encode_backward(x, table, tables, mask, grad_out, want_x, want_table)
     for a, b, wanted in zip(got, want, (want_x, want_table), strict=True):
         if wanted:
             assert_near(a, b, 2e-6)
@@ -199,7 +200,7 @@ def test_half_precision_table_is_upcast() -> None:
     half = table.to(torch.float16)
     out = hashgrid_triton.encode_forward(x, half, tables, mask)
     assert out.dtype == torch.float16
-    assert_near(out.float(), _encode(x, half.float(), tables, mask), 2e-3)
+    assert_near(out.float(), eager_encode_forward(x, half.float(), tables, mask), 2e-3)
     _, grad_table = hashgrid_triton.encode_backward(x, half, tables, mask, torch.ones_like(out), False, True)
     assert grad_table is not None and grad_table.dtype == torch.float16
 
@@ -216,7 +217,7 @@ def test_cpu_keeps_the_eager_path(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(hashgrid_triton, "encode_backward", refuse)
     for choice in ("auto", "eager"):
         with executing(ExecutionConfig(hashgrid=choice)):  # type: ignore[arg-type]
-            assert _triton_kernels(x, grid.table) is None
+            assert triton_kernels(x, grid.table) is None
             xi = x.clone().requires_grad_(True)
             grid(xi).sum().backward()
             assert xi.grad is not None and grid.table.grad is not None
@@ -229,7 +230,7 @@ def test_forcing_triton_where_it_cannot_run_names_the_setting(monkeypatch: pytes
         with pytest.raises(RuntimeError, match=r"execution\.hashgrid=triton"):
             grid(torch.rand(10, 3))
         # float64 (gradcheck) is not the kernels' business: the tensor code runs under either choice.
-        assert _triton_kernels(torch.rand(10, 3, dtype=torch.float64), grid.table.double()) is None
+        assert triton_kernels(torch.rand(10, 3, dtype=torch.float64), grid.table.double()) is None
 
 
 @pytest.mark.skipif(CUDA, reason="the interpreter path is the CPU's")
@@ -251,7 +252,7 @@ def test_forced_triton_through_hash_grid_module_under_the_interpreter() -> None:
         return out.detach(), xi.grad, grid.table.grad.clone()
 
     with executing(ExecutionConfig(hashgrid="triton")):
-        assert _triton_kernels(x, grid.table) is hashgrid_triton
+        assert triton_kernels(x, grid.table) is hashgrid_triton
     for got, want in zip(run("triton"), run("eager"), strict=True):
         assert_near(got, want, 2e-6)
 
@@ -287,7 +288,7 @@ def test_paper_grid_on_cuda_defaults_to_triton_and_matches_eager(n: int) -> None
     x = torch.rand(n, 3, generator=torch.Generator().manual_seed(n + 1)).cuda()
     w = torch.randn(n, grid.output_dim, generator=torch.Generator().manual_seed(n + 2)).cuda()
     with executing(ExecutionConfig()):
-        assert _triton_kernels(x, grid.table) is hashgrid_triton
+        assert triton_kernels(x, grid.table) is hashgrid_triton
 
     def run(choice: str) -> tuple[torch.Tensor, ...]:
         with executing(ExecutionConfig(hashgrid=choice, compile=False)):  # type: ignore[arg-type]

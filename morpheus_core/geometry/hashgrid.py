@@ -96,8 +96,8 @@ class HashGridConfig:
         return layout
 
 
-class _LevelTables:
-    """The constant per-level tensors the kernel needs, built once per device."""
+class LevelTables:
+    """The constant per-level tensors the encoders (eager and Triton) need, built once per device."""
 
     def __init__(self, config: HashGridConfig, device: torch.device) -> None:
         layout = config.level_layout()
@@ -131,7 +131,7 @@ def _corner_product(per_axis: Tensor, combine: str) -> Tensor:
     return out.reshape(*per_axis.shape[:-2], 8)
 
 
-def _positions(x: Tensor, tables: _LevelTables) -> tuple[Tensor, Tensor]:
+def _positions(x: Tensor, tables: LevelTables) -> tuple[Tensor, Tensor]:
     """Integer cell (N, L, 3) and fraction (N, L, 3) of every point on every level.
 
     Positions are formed in the input's dtype: float32 rounding of x·scale matches tcnn's own
@@ -142,7 +142,7 @@ def _positions(x: Tensor, tables: _LevelTables) -> tuple[Tensor, Tensor]:
     return base.to(torch.int64), pos - base
 
 
-def _row_indices(cell: Tensor, tables: _LevelTables, base: Tensor | None = None) -> Tensor:
+def _row_indices(cell: Tensor, tables: LevelTables, base: Tensor | None = None) -> Tensor:
     """(N, L, 8) rows of the flat table holding each corner's features; ``base`` (N,): each point's
     first row in a table of several tables one after another (the reference for the kernels' row
     bases, ``hashgrid_triton.encode_forward``)."""
@@ -161,7 +161,9 @@ def _axis_weights(frac: Tensor) -> Tensor:
     return torch.stack((1 - frac, frac), -1)
 
 
-def _encode(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, base: Tensor | None = None) -> Tensor:
+def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
+                         base: Tensor | None = None) -> Tensor:
+    """(N, 3) points → (N, L·F) features in the table's dtype, by tensor ops: the Triton kernels' reference."""
     cell, frac = _positions(x, tables)
     idx = _row_indices(cell, tables, base)
     weights = _corner_product(_axis_weights(frac), "mul").to(table.dtype)
@@ -169,8 +171,10 @@ def _encode(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, 
     return out.flatten(1)  # (N, L·F), also for N = 0
 
 
-def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, grad_out: Tensor,
-                     want_x: bool, want_table: bool, base: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+def eager_encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor, grad_out: Tensor,
+                          want_x: bool, want_table: bool,
+                          base: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+    """(grad_x, grad_table) of ``eager_encode_forward``, each None unless wanted (the hand-written backward)."""
     cell, frac = _positions(x, tables)
     idx = _row_indices(cell, tables, base)
     mask = level_mask.reshape(1, -1, 1).to(grad_out.dtype)
@@ -195,7 +199,7 @@ def _encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask:
     return grad_x, grad_table
 
 
-def _triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
+def triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
     """The Triton kernel module when this encode should use it (``execution.hashgrid``,
     ``triton_support.choose``), else None."""
 
@@ -212,19 +216,20 @@ class _HashEncode(torch.autograd.Function):
     """Fused Triton kernels on CUDA, else pure tensor functions, compiled on CUDA (``compiled_for``)."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(x, level_mask, table)
         ctx.tables = tables
-        ctx.kernels = kernels = _triton_kernels(x, table)  # the backward uses the forward's choice
+        ctx.kernels = kernels = triton_kernels(x, table)  # the backward uses the forward's choice
         if kernels is not None:
             return kernels.encode_forward(x, table, tables, level_mask)
-        return compiled_for(_encode, x.device)(x, table, tables, level_mask)
+        return compiled_for(eager_encode_forward, x.device)(x, table, tables, level_mask)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, level_mask, table = ctx.saved_tensors
         want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
-        backward = ctx.kernels.encode_backward if ctx.kernels is not None else compiled_for(_encode_backward, x.device)
+        kernels = ctx.kernels
+        backward = kernels.encode_backward if kernels is not None else compiled_for(eager_encode_backward, x.device)
         grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
         return grad_x, grad_table, None, None
 
@@ -239,7 +244,7 @@ class HashGrid(nn.Module):
         init = (torch.rand(rows, config.n_features_per_level, generator=generator) * 2 - 1) * _INIT_SCALE
         self.table = nn.Parameter(init)
         self.register_buffer("level_mask", torch.ones(config.n_levels), persistent=True)
-        self._tables: _LevelTables | None = None
+        self._tables: LevelTables | None = None
         self.set_active_levels(config.levels_at(0))
 
     @property
@@ -261,14 +266,15 @@ class HashGrid(nn.Module):
     def update_step(self, step: int) -> None:
         self.set_active_levels(self.config.levels_at(step))
 
-    def _level_tables(self) -> _LevelTables:
+    def level_tables(self) -> LevelTables:
+        """This grid's per-level constants on the table's device (cached; the encoders' ``tables`` argument)."""
         device = self.table.device
         if self._tables is None or self._tables.scale.device != device:
-            self._tables = _LevelTables(self.config, device)
+            self._tables = LevelTables(self.config, device)
         return self._tables
 
     def forward(self, x: Tensor) -> Tensor:
-        out = _HashEncode.apply(_flat_points(x), self.table, self._level_tables(), self.level_mask)
+        out = _HashEncode.apply(_flat_points(x), self.table, self.level_tables(), self.level_mask)
         return out.reshape(*x.shape[:-1], self.output_dim)
 
 

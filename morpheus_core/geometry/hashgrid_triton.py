@@ -1,7 +1,7 @@
 """Fused Triton kernels for the hash-grid encoding: forward and hand-written backward.
 
-Same conventions and the same call signatures as ``_encode`` / ``_encode_backward`` in
-``hashgrid.py`` (the eager PyTorch code, which stays the CPU path and the reference): per level,
+Same conventions and the same call signatures as ``eager_encode_forward`` / ``eager_encode_backward``
+in ``hashgrid.py`` (the eager PyTorch code, which stays the CPU path and the reference): per level,
 pos = x·float32(scale) + 0.5, cell = floor(pos), frac = pos − cell; dense levels index
 x + y·res + z·res², hashed levels xor the coordinates times (1, 2654435761, 805459861) in uint32;
 every index modulo the level's rows plus its row offset; trilinear weights ((w_z·w_y)·w_x, in the
@@ -37,13 +37,13 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from morpheus_core.geometry.hashgrid_triton_levels import _backward_level, _forward_level, _load_points
+from morpheus_core.geometry.hashgrid_triton_levels import backward_level, forward_level, load_points
 from morpheus_core.triton_support import device_guard, load_triton
 
 triton, tl, _jit = load_triton()
 
 if TYPE_CHECKING:
-    from morpheus_core.geometry.hashgrid import _LevelTables
+    from morpheus_core.geometry.hashgrid import LevelTables
 
 _BLOCK = 128  # points per program: 4 warps of 32 threads, one point per thread
 _NUM_WARPS = 4
@@ -82,13 +82,13 @@ def _encode_kernel(x_ptr, base_ptr, table_ptr, out_ptr, scale_ptr, res_ptr, rows
     level = tl.program_id(1)
     offs = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
     valid = offs < n_points
-    x0, x1, x2, base = _load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
+    x0, x1, x2, base = load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
     if level < n_dense:  # dense levels are a prefix of the levels: uniform per program
-        acc = _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
-                             level, F, BLOCK, False)
+        acc = forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                            level, F, BLOCK, False)
     else:
-        acc = _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
-                             level, F, BLOCK, True)
+        acc = forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr,
+                            level, F, BLOCK, True)
     feats = tl.arange(0, F)
     ptrs = out_ptr + offs[:, None] * (n_levels * F) + level * F + feats[None, :]
     tl.store(ptrs, acc.to(out_ptr.dtype.element_ty), mask=valid[:, None])
@@ -102,12 +102,12 @@ def _encode_backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table
     lane = tl.arange(0, BLOCK)
     offs = (tl.program_id(0) * BLOCK + lane).to(tl.int64)
     valid = offs < n_points
-    x0, x1, x2, base = _load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
+    x0, x1, x2, base = load_points(x_ptr, base_ptr, offs, valid, BLOCK, STACKED)
     first = lane == 0
     last = (lane == BLOCK - 1) | (offs + 1 >= n_points)
     if REDUCE_DENSE or REDUCE_HASHED:  # the neighbours' coordinates, to find runs of points in one cell
-        before = _load_points(x_ptr, base_ptr, offs - 1, valid & (lane > 0), BLOCK, STACKED)
-        after = _load_points(x_ptr, base_ptr, offs + 1, (offs + 1) < n_points, BLOCK, STACKED)
+        before = load_points(x_ptr, base_ptr, offs - 1, valid & (lane > 0), BLOCK, STACKED)
+        after = load_points(x_ptr, base_ptr, offs + 1, (offs + 1) < n_points, BLOCK, STACKED)
     else:
         before = (x0, x1, x2, base)
         after = before
@@ -116,16 +116,16 @@ def _encode_backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table
         g1 = tl.zeros([BLOCK], dtype=tl.float32)
         g2 = tl.zeros([BLOCK], dtype=tl.float32)
         for level in range(0, n_dense):
-            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
-                                         grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
-                                         mask_ptr, level, n_levels, F, BLOCK, False, WANT_X, WANT_TABLE, REDUCE_DENSE)
+            d0, d1, d2 = backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
+                                        grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
+                                        mask_ptr, level, n_levels, F, BLOCK, False, WANT_X, WANT_TABLE, REDUCE_DENSE)
             g0 += d0
             g1 += d1
             g2 += d2
         for level in range(n_dense, n_levels):
-            d0, d1, d2 = _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
-                                         grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
-                                         mask_ptr, level, n_levels, F, BLOCK, True, WANT_X, WANT_TABLE, REDUCE_HASHED)
+            d0, d1, d2 = backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr,
+                                        grad_out_ptr, grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr,
+                                        mask_ptr, level, n_levels, F, BLOCK, True, WANT_X, WANT_TABLE, REDUCE_HASHED)
             g0 += d0
             g1 += d1
             g2 += d2
@@ -136,13 +136,13 @@ def _encode_backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table
     else:  # grid (blocks, levels): the table gradient alone, one level per program
         level = tl.program_id(1)
         if level < n_dense:
-            _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
-                            grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
-                            F, BLOCK, False, False, WANT_TABLE, REDUCE_DENSE)
+            backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
+                           grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                           F, BLOCK, False, False, WANT_TABLE, REDUCE_DENSE)
         else:
-            _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
-                            grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
-                            F, BLOCK, True, False, WANT_TABLE, REDUCE_HASHED)
+            backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr,
+                           grad_table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels,
+                           F, BLOCK, True, False, WANT_TABLE, REDUCE_HASHED)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,9 +150,9 @@ def _encode_backward_kernel(x_ptr, base_ptr, table_ptr, grad_out_ptr, grad_table
 # ---------------------------------------------------------------------------------------------
 
 class _Constants:
-    """The per-level constants as the kernels read them (device tensors, built once per _LevelTables)."""
+    """The per-level constants as the kernels read them (device tensors, built once per LevelTables)."""
 
-    def __init__(self, tables: _LevelTables) -> None:
+    def __init__(self, tables: LevelTables) -> None:
         self.scale = tables.scale.to(torch.float32).contiguous()  # = the eager fp32 path's scale.to(x.dtype)
         self.res = tables.strides[:, 1].to(torch.int32).contiguous()
         self.rows = tables.rows.to(torch.int32).contiguous()
@@ -164,14 +164,14 @@ class _Constants:
 _constants: weakref.WeakKeyDictionary[Any, _Constants] = weakref.WeakKeyDictionary()
 
 
-def _constants_for(tables: _LevelTables) -> _Constants:
+def _constants_for(tables: LevelTables) -> _Constants:
     consts = _constants.get(tables)
     if consts is None:
         consts = _constants[tables] = _Constants(tables)
     return consts
 
 
-def _check(x: Tensor, table: Tensor, tables: _LevelTables) -> _Constants:
+def _check(x: Tensor, table: Tensor, tables: LevelTables) -> _Constants:
     if triton is None:
         raise RuntimeError("the hash-grid Triton kernels need the triton package")
     if not supports(x, table):
@@ -207,9 +207,9 @@ def _row_bases(x: Tensor, base: Tensor | None) -> Tensor:
     return base.to(torch.int64).contiguous()
 
 
-def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor,
+def encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
                    base: Tensor | None = None) -> Tensor:
-    """(N, 3) points → (N, L·F) features in the table's dtype; as ``hashgrid._encode``."""
+    """(N, 3) points → (N, L·F) features in the table's dtype; as ``hashgrid.eager_encode_forward``."""
     consts = _check(x, table, tables)
     bases = _row_bases(x, base)
     x = x.contiguous()
@@ -227,9 +227,9 @@ def encode_forward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: T
     return out
 
 
-def encode_backward(x: Tensor, table: Tensor, tables: _LevelTables, level_mask: Tensor, grad_out: Tensor,
+def encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor, grad_out: Tensor,
                     want_x: bool, want_table: bool, base: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
-    """(grad_x, grad_table), each None unless wanted; as ``hashgrid._encode_backward``."""
+    """(grad_x, grad_table), each None unless wanted; as ``hashgrid.eager_encode_backward``."""
     consts = _check(x, table, tables)
     bases = _row_bases(x, base)
     if RUN_REDUCTION not in RUN_REDUCTIONS:

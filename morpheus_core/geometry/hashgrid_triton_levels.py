@@ -78,9 +78,10 @@ def _level_setup(x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, ma
     return scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active
 
 
+# One level's trilinear gather: the block's (BLOCK, F) features, times the level's mask.
 @_jit
-def _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
-                   F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
+def forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level,
+                  F: tl.constexpr, BLOCK: tl.constexpr, HASHED: tl.constexpr):
     _scale, res, rows, offset, m, c0, c1, c2, f0, f1, f2, active = _level_setup(
         x0, x1, x2, valid, scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, BLOCK)
     feats = tl.arange(0, F)
@@ -95,7 +96,7 @@ def _forward_level(x0, x1, x2, base, valid, table_ptr, scale_ptr, res_ptr, rows_
 
 
 @_jit
-def _load_points(x_ptr, base_ptr, offs, valid, BLOCK: tl.constexpr, STACKED: tl.constexpr):
+def load_points(x_ptr, base_ptr, offs, valid, BLOCK: tl.constexpr, STACKED: tl.constexpr):
     """A block's coordinates, and the first table row of each point's object (0 unless STACKED)."""
     x0 = tl.load(x_ptr + offs * 3, mask=valid, other=0.0)
     x1 = tl.load(x_ptr + offs * 3 + 1, mask=valid, other=0.0)
@@ -141,10 +142,10 @@ def _scatter_runs(c0, c1, c2, f0, f1, f2, base, g, head, tail, active, grad_tabl
 
 
 @_jit
-def _backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr, grad_table_ptr,
-                    scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr,
-                    BLOCK: tl.constexpr, HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr,
-                    REDUCE: tl.constexpr):
+def backward_level(x0, x1, x2, base, offs, valid, before, after, first, last, table_ptr, grad_out_ptr, grad_table_ptr,
+                   scale_ptr, res_ptr, rows_ptr, offset_ptr, mask_ptr, level, n_levels, F: tl.constexpr,
+                   BLOCK: tl.constexpr, HASHED: tl.constexpr, WANT_X: tl.constexpr, WANT_TABLE: tl.constexpr,
+                   REDUCE: tl.constexpr):
     """One level's table-gradient scatter; returns its (∂L/∂x, ∂L/∂y, ∂L/∂z) contribution. ``before`` and
     ``after``: the neighbouring points' (x, y, z, row base), read when REDUCE sums runs of points in one
     cell before the atomics (``first``/``last``: lanes where a run must start/end)."""
