@@ -16,7 +16,7 @@ from torch import nn
 from morpheus_core.execution import ExecutionConfig, executing
 from morpheus_core.geometry.field_heads import evaluate_heads, head_parameters
 from morpheus_core.geometry.hashgrid import HashGridConfig
-from morpheus_core.geometry.nerf import NerfConfig, NerfField, _mlp
+from morpheus_core.geometry.nerf import NerfConfig, NerfField, head_mlp
 
 CUDA = torch.cuda.is_available()
 if not CUDA:
@@ -31,7 +31,7 @@ REL = 5e-3 if CUDA else 2e-6  # CUDA: TF32 products
 
 def heads(n_in: int, hidden: int, n_out: int, seed: int) -> tuple[nn.Sequential, nn.Sequential]:
     torch.manual_seed(seed)
-    return _mlp(n_in, hidden, 2, 1).to(DEVICE), _mlp(n_in, hidden, 2, n_out).to(DEVICE)
+    return head_mlp(n_in, hidden, 2, 1).to(DEVICE), head_mlp(n_in, hidden, 2, n_out).to(DEVICE)
 
 
 def problem(n: int, n_in: int, hidden: int, grad_width: int,
@@ -179,7 +179,7 @@ def test_unsupported_inputs() -> None:
     assert not mlp_triton.supports(x, [pd, head_parameters(wide_out)])
     _, other_width = heads(32, 48, 3, seed=9)
     assert not mlp_triton.supports(x, [pd, head_parameters(other_width)])  # the heads share one width
-    assert head_parameters(_mlp(32, 64, 1, 1)) is None  # one hidden layer: the modules run it
+    assert head_parameters(head_mlp(32, 64, 1, 1)) is None  # one hidden layer: the modules run it
     with pytest.raises(ValueError, match="fused field heads take fp32"):
         mlp_triton.heads_forward(x.double(), pd, pa)
 
@@ -232,7 +232,7 @@ def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:
     x = torch.randn(20, 32, device=DEVICE)
     with pytest.raises(ValueError, match=r"execution\.field_mlp must be one of auto, triton, eager"):
         ExecutionConfig(field_mlp="fast")  # type: ignore[arg-type]
-    one_layer = _mlp(32, 64, 1, 3).to(DEVICE)  # not a shape the kernels take: the module, under any choice
+    one_layer = head_mlp(32, 64, 1, 3).to(DEVICE)  # not a shape the kernels take: the module, under any choice
     with executing(ExecutionConfig(field_mlp="triton")):
         assert_near(evaluate_heads(x, density, one_layer)[1], one_layer(x), 0.0)
 

@@ -70,7 +70,8 @@ def central_difference_normals(density_fn: object, points: Tensor, eps: float) -
     return safe_normalize(-grad)
 
 
-def _mlp(n_in: int, hidden: int, n_hidden_layers: int, n_out: int) -> nn.Sequential:
+def head_mlp(n_in: int, hidden: int, n_hidden_layers: int, n_out: int) -> nn.Sequential:
+    """A field head: ``n_hidden_layers`` × (Linear to ``hidden``, ReLU), then a Linear to ``n_out``."""
     layers: list[nn.Module] = []
     width = n_in
     for _ in range(n_hidden_layers):
@@ -125,8 +126,8 @@ class NerfField(nn.Module):
         self.bbox_radius = self.config.bbox_radius
         self.encoding = HashGrid(self.config.grid, generator=generator)
         dim = self.encoding.output_dim
-        self.density_mlp = _mlp(dim, self.config.hidden, self.config.n_hidden_layers, 1)
-        self.albedo_mlp = _mlp(dim, self.config.hidden, self.config.n_hidden_layers, 3)
+        self.density_mlp = head_mlp(dim, self.config.hidden, self.config.n_hidden_layers, 1)
+        self.albedo_mlp = head_mlp(dim, self.config.hidden, self.config.n_hidden_layers, 3)
         if generator is not None:
             _seeded_linear_init((*self.density_mlp, *self.albedo_mlp), generator)
 
