@@ -9,8 +9,8 @@ import torch
 from morpheus_core.cameras import sample_orbit
 from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.render.volume import SampleBudget, VolumeRenderConfig, render_volume
+from tests.nerf_fields import occupancy_grid_for, small_nerf
 from tests.seeds import fresh_seed
-from tests.test_volume import _grid_for, small_nerf
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
@@ -21,7 +21,7 @@ def _steps(graphed: bool, seed: int, steps: int, resize_at: int | None = None):
     """``steps`` Adam steps of a small field on padded buffers; per step the render and the gradients."""
     dev = torch.device("cuda")
     field = small_nerf(seed % 1000).to(dev)
-    grid = _grid_for(field, dev, seed)
+    grid = occupancy_grid_for(field, dev, seed)
     opt = torch.optim.Adam(field.parameters(), lr=1e-2)
     budget = SampleBudget(headroom=1.25, quantum=256, graphed=graphed)
     out = []

@@ -7,8 +7,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import orbit, reference_camera, sample_orbit
-from morpheus_core.geometry.hashgrid import HashGridConfig
-from morpheus_core.geometry.nerf import FieldSample, NerfConfig, NerfField
+from morpheus_core.geometry.nerf import FieldSample, NerfField
 from morpheus_core.render.volume import (
     OccupancyGrid,
     OccupancyGridConfig,
@@ -18,6 +17,7 @@ from morpheus_core.render.volume import (
     render_silhouette,
     render_volume,
 )
+from tests.nerf_fields import occupancy_grid_for, small_nerf
 from tests.seeds import fresh_seed
 
 
@@ -100,11 +100,6 @@ def test_ray_box_entry_exit_and_misses() -> None:
     assert hit.tolist() == [True, False, True]
     torch.testing.assert_close(near[[0, 2]], torch.tensor([2.0, 0.0]))
     torch.testing.assert_close(far[[0, 2]], torch.tensor([4.0, 1.0]))
-
-
-def small_nerf(seed: int = 0) -> NerfField:
-    grid = HashGridConfig(n_levels=4, log2_table_size=12, base_resolution=8, per_level_scale=1.6)
-    return NerfField(NerfConfig(grid=grid, hidden=16), generator=torch.Generator().manual_seed(seed))
 
 
 def test_occupancy_grid_skips_empty_space_without_changing_the_render(device: torch.device) -> None:
@@ -225,12 +220,6 @@ def test_training_renders_skip_samples_behind_opaque_surfaces(device: torch.devi
         assert torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0) > 0.999
 
 
-def _grid_for(field: NerfField, device: torch.device, seed: int) -> OccupancyGrid:
-    grid = OccupancyGrid(OccupancyGridConfig(resolution=16, density_threshold=1e-3), field.bbox_radius).to(device)
-    grid.refresh(field, torch.Generator().manual_seed(seed))
-    return grid
-
-
 def _render_and_grads(field: NerfField, cams, grid: OccupancyGrid, budget: SampleBudget | None, seed: int):
     cfg = VolumeRenderConfig(n_samples=40, with_normals=True, normal_weight_threshold=1e-4)
     field.zero_grad()
@@ -246,7 +235,7 @@ def test_padded_sample_buffers_render_and_backpropagate_like_the_exact_gather(se
                                                                               device: torch.device) -> None:
     field = small_nerf(seed % 1000).to(device)
     cams = sample_orbit(2, generator=torch.Generator().manual_seed(seed)).to(device)
-    grid = _grid_for(field, device, seed)
+    grid = occupancy_grid_for(field, device, seed)
     exact, exact_grads = _render_and_grads(field, cams, grid, None, seed)
     budget = SampleBudget(headroom=1.0, quantum=64)
     _render_and_grads(field, cams, grid, budget, seed)  # the first render sizes the buffers from its counts
