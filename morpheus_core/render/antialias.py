@@ -34,7 +34,7 @@ from torch import Tensor
 
 from morpheus_core.devices import compiled_for
 from morpheus_core.gather import gather_batched_rows, gather_rows
-from morpheus_core.render.raster import Fragments, RasterInputError, _pair_chunks, _span, _to_pixels
+from morpheus_core.render.raster import Fragments, RasterInputError, clip_to_pixels, pair_chunks, pixel_span
 
 # Resolution of the crossing position t in the (t, edge) key that picks the outermost edge of a pair.
 _T_BITS = 20
@@ -59,7 +59,7 @@ def _candidates(orient: Tensor, edge_faces: Tensor, nonmanifold: Tensor, edge_ve
     o1 = orient[:, edge_faces[:, 0]]
     o2 = torch.where(has_two, orient[:, edge_faces[:, 1].clamp(min=0)], 0)
     candidate = ((o1 != 0) | (o2 != 0)) & (nonmanifold | ~has_two | (o1 != o2))
-    sx, sy, _, ok = _to_pixels(clip, height, width, near_w)
+    sx, sy, _, ok = clip_to_pixels(clip, height, width, near_w)
     return candidate & ok[:, edge_vertices].all(-1), sx, sy
 
 
@@ -73,8 +73,8 @@ def _walks(view: Tensor, edge: Tensor, edge_vertices: Tensor, sx: Tensor, sy: Te
     du, dv = u1 - u0, v1 - v0
     long_enough = torch.maximum(du.abs(), dv.abs()) > min_edge_px
     x_major = du.abs() >= dv.abs()
-    first_x, last_x = _span(torch.minimum(u0, u1), torch.maximum(u0, u1), width)
-    first_y, last_y = _span(torch.minimum(v0, v1), torch.maximum(v0, v1), height)
+    first_x, last_x = pixel_span(torch.minimum(u0, u1), torch.maximum(u0, u1), width)
+    first_y, last_y = pixel_span(torch.minimum(v0, v1), torch.maximum(v0, v1), height)
     counts_x = ((last_x - first_x + 1).clamp(min=0) * (x_major & long_enough)).long()
     counts_y = ((last_y - first_y + 1).clamp(min=0) * (~x_major & long_enough)).long()
     return torch.stack([u0, u1, v0, v1], -1), first_x, counts_x, first_y, counts_y
@@ -153,7 +153,7 @@ def silhouette_crossings(fragments: Fragments) -> SilhouetteCrossings:
         # Walk x-major edges along columns (crossing vertical pixel pairs) and y-major edges along rows;
         # the row walks' pairs sit in the second half of ``best``.
         for major, first, counts in ((True, first_x, counts_x), (False, first_y, counts_y)):
-            for owner, local in _pair_chunks(counts, config.max_pairs_per_chunk):
+            for owner, local in pair_chunks(counts, config.max_pairs_per_chunk):
                 pair, key = compiled_for(_crossing_keys, device)(
                     owner, local, first, ends, view, edge, covered, major, width, height * width,
                     height if major else width, 0 if major else covered.shape[0], edge_scale)

@@ -166,7 +166,7 @@ def _check_inputs(clip: Tensor, faces: Tensor, height: int, width: int, checked:
     return clip
 
 
-def _to_pixels(clip: Tensor, height: int, width: int, near_w: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def clip_to_pixels(clip: Tensor, height: int, width: int, near_w: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Pixel coordinates (sx, sy), NDC depth and a per-vertex 'in front of the camera' flag.
 
     Vertices at w <= near_w are divided by 1 instead, so nothing non-finite is produced; every
@@ -204,7 +204,7 @@ def _edge_functions(x: Tensor, y: Tensor, px: Tensor, py: Tensor) -> tuple[Tenso
     return e0, e1, e2
 
 
-def _pair_chunks(counts: Tensor, chunk: int) -> Iterator[tuple[Tensor, Tensor]]:
+def pair_chunks(counts: Tensor, chunk: int) -> Iterator[tuple[Tensor, Tensor]]:
     """All pairs (owner, k) with 0 <= k < counts[owner], in slices of at most ``chunk`` pairs; one
     host read (the total). The first end past a pair's index is its owner's, so owners without
     pairs are skipped without being listed first."""
@@ -218,7 +218,7 @@ def _pair_chunks(counts: Tensor, chunk: int) -> Iterator[tuple[Tensor, Tensor]]:
         yield owner, idx - (ends[owner] - counts[owner])
 
 
-def _span(lo: Tensor, hi: Tensor, size: int) -> tuple[Tensor, Tensor]:
+def pixel_span(lo: Tensor, hi: Tensor, size: int) -> tuple[Tensor, Tensor]:
     """Integer pixel-centre range [first, last] inside [lo, hi] ∩ [0, size-1]; empty when last < first."""
     first = torch.ceil(lo.clamp(-1.0, float(size))).long().clamp(min=0)
     last = torch.floor(hi.clamp(-1.0, float(size))).long().clamp(max=size - 1)
@@ -230,7 +230,7 @@ def _triangle_setup(clip: Tensor, faces: Tensor, height: int, width: int, near_w
     """Per view and triangle: orientation (B, F) int8, pixel-pair count (B·F,) of its screen box (0
     when not drawn), packed corners (B·F, 10: x, y, NDC depth, area) and box (B·F, 3: first column,
     first row, width). Pure tensor code: compiled on CUDA (``compiled_for``)."""
-    sx, sy, z, ok = _to_pixels(clip, height, width, near_w)
+    sx, sy, z, ok = clip_to_pixels(clip, height, width, near_w)
     tx, ty, tz = sx[:, faces], sy[:, faces], z[:, faces]  # (B, F, 3)
     area = _signed_area(tx, ty)
     # Degenerate: tiny area in pixels, or tiny relative to the longest edge (collinear corners
@@ -242,8 +242,8 @@ def _triangle_setup(clip: Tensor, faces: Tensor, height: int, width: int, near_w
     if cull_backfaces:
         drawable &= front
     orientation = torch.where(drawable, torch.where(front, 1, -1), 0).to(torch.int8)
-    j0, j1 = _span(tx.amin(-1), tx.amax(-1), width)
-    i0, i1 = _span(ty.amin(-1), ty.amax(-1), height)
+    j0, j1 = pixel_span(tx.amin(-1), tx.amax(-1), width)
+    i0, i1 = pixel_span(ty.amin(-1), ty.amax(-1), height)
     box_w = (j1 - j0 + 1).clamp(min=0)
     counts = (box_w * (i1 - i0 + 1).clamp(min=0) * drawable).reshape(-1)
     # One gather per pair instead of several: corners, depths and area packed in one row.
@@ -293,7 +293,7 @@ def rasterize(clip: Tensor, faces: Tensor | MeshTopology, height: int, width: in
         id_scale = 1 << id_bits
         depth_scale = float((1 << min(_MAX_DEPTH_BITS, 62 - id_bits)) - 1)
         zbuf = torch.full((batch * hw,), _INT64_MAX, dtype=torch.int64, device=device)
-        for tri, local in _pair_chunks(counts, config.max_pairs_per_chunk):
+        for tri, local in pair_chunks(counts, config.max_pairs_per_chunk):
             pixel, key = compiled_for(_pair_keys, device)(tri, local, boxes, corners, max(num_faces, 1), width, hw,
                                                           id_scale, depth_scale)
             zbuf.scatter_reduce_(0, pixel, key, reduce="amin", include_self=True)
