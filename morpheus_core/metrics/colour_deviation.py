@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.color import rgb_to_lab
-from morpheus_core.metrics.image import MetricInputError, _images, _masks
+from morpheus_core.metrics.image import MetricInputError, checked_images, checked_masks
 
 # a*, b* of sRGB colours lie within about [−108, 99]; the usual 8-bit Lab range holds them all.
 _AB_RANGE = (-128.0, 128.0)
@@ -59,13 +59,13 @@ def colour_deviation(views: Tensor, view_masks: Tensor, reference: Tensor, refer
     """
     if not isinstance(bins, int) or bins < 2:
         raise MetricInputError(f"bins must be an integer ≥ 2, got {bins!r}")
-    vs = _images(views, "views", colour=True)
-    ref = _images(reference, "reference", colour=True)
+    vs = checked_images(views, "views", colour=True)
+    ref = checked_images(reference, "reference", colour=True)
     if ref.shape[0] != 1:
         raise MetricInputError(f"reference must be a single image, got a batch of {ref.shape[0]}")
     n, _, h, w = vs.shape
-    vm = _masks(view_masks, "view_masks", n, h, w)
-    rm = _masks(reference_mask, "reference_mask", 1, ref.shape[-2], ref.shape[-1])
+    vm = checked_masks(view_masks, "view_masks", n, h, w)
+    rm = checked_masks(reference_mask, "reference_mask", 1, ref.shape[-2], ref.shape[-1])
     ref_hist = _ab_histogram(ref[0], rm[0, 0], bins)
     if ref_hist is None:
         return None

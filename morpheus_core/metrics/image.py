@@ -85,8 +85,9 @@ def _finite(t: object, name: str) -> Tensor:
     return t
 
 
-def _images(x: object, name: str, colour: bool = False) -> Tensor:
-    """(N, C, H, W) float64 from (C, H, W) or (N, C, H, W)."""
+def checked_images(x: object, name: str, colour: bool = False) -> Tensor:
+    """Images checked (finite, non-empty, 3 channels if ``colour``) as (N, C, H, W) float64 from (C, H, W) or
+    (N, C, H, W); a MetricInputError naming ``name`` otherwise."""
     t = _finite(x, name)
     if t.dim() == 3:
         t = t.unsqueeze(0)
@@ -98,14 +99,15 @@ def _images(x: object, name: str, colour: bool = False) -> Tensor:
 
 
 def _image_pair(x: object, y: object) -> tuple[Tensor, Tensor]:
-    xs, ys = _images(x, "x"), _images(y, "y")
+    xs, ys = checked_images(x, "x"), checked_images(y, "y")
     if xs.shape != ys.shape:
         raise MetricInputError(f"x and y differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
     return xs, ys
 
 
-def _masks(m: object, name: str, n: int | None, h: int, w: int) -> Tensor:
-    """(N, 1, H, W) float64 in [0, 1]; a single mask is repeated over the batch of ``n`` (None: keep its own N)."""
+def checked_masks(m: object, name: str, n: int | None, h: int, w: int) -> Tensor:
+    """Masks checked (finite, in [0, 1], H×W = ``h``×``w``) as (N, 1, H, W) float64; a single mask is repeated
+    over the batch of ``n`` (None: keep its own N); a MetricInputError naming ``name`` otherwise."""
     t = _finite(m, name)
     if t.dim() == 2:
         t = t[None, None]
@@ -128,7 +130,7 @@ def _mask_2d(m: object, name: str) -> Tensor:
         raise MetricInputError(f"{name} must be a torch.Tensor, got {type(m).__name__}")
     if m.dim() < 2:
         raise MetricInputError(f"{name} must have at least 2 dims (H, W), got {tuple(m.shape)}")
-    return _masks(m, name, None, int(m.shape[-2]), int(m.shape[-1]))
+    return checked_masks(m, name, None, int(m.shape[-2]), int(m.shape[-1]))
 
 
 # -- PSNR ----------------------------------------------------------------------------------------
@@ -155,7 +157,7 @@ def masked_psnr(x: Tensor, y: Tensor, mask: Tensor, max_value: float = 1.0) -> t
         raise MetricInputError(f"max_value must be a positive finite number, got {max_value}")
     xs, ys = _image_pair(x, y)
     n, c, h, w = xs.shape
-    m = _masks(mask, "mask", n, h, w)
+    m = checked_masks(mask, "mask", n, h, w)
     sq = (xs - ys).pow(2).sum(dim=1, keepdim=True)
     return _weighted_psnr(sq, m, c, max_value), _weighted_psnr(sq, 1.0 - m, c, max_value)
 
@@ -224,10 +226,10 @@ def _ssim_mean_map(x: Tensor, y: Tensor, window: int, sigma: float, data_range: 
 def _centre_weights(mask: Tensor, x: Tensor, window: int) -> Tensor:
     """The mask at the SSIM map's pixels: map pixel (i, j) is the window centred on image pixel
     (i + window // 2, j + window // 2)."""
-    xs = _images(x, "x")
+    xs = checked_images(x, "x")
     n, _, h, w = xs.shape
     half = window // 2
-    return _masks(mask, "mask", n, h, w)[..., half : h - half, half : w - half]
+    return checked_masks(mask, "mask", n, h, w)[..., half : h - half, half : w - half]
 
 
 def ssim(x: Tensor, y: Tensor, mask: Tensor | None = None, window: int = 11, sigma: float = 1.5,
@@ -324,8 +326,8 @@ def hf_ratio(views: Tensor, reference: Tensor, cutoff: float = 0.5, mask: Tensor
     """
     if (mask is None) != (reference_mask is None):
         raise MetricInputError("hf_ratio needs both mask and reference_mask, or neither")
-    vs = _images(views, "views", colour=True)
-    ref = _images(reference, "reference", colour=True)
+    vs = checked_images(views, "views", colour=True)
+    ref = checked_images(reference, "reference", colour=True)
     if ref.shape[0] != 1:
         raise MetricInputError(f"reference must be a single image, got a batch of {ref.shape[0]}")
     n, _, h, w = vs.shape
@@ -333,8 +335,8 @@ def hf_ratio(views: Tensor, reference: Tensor, cutoff: float = 0.5, mask: Tensor
         raise MetricInputError(f"views are {h}×{w} but the reference is {ref.shape[-2]}×{ref.shape[-1]}")
     if not 0.0 < cutoff < 1.0:
         raise MetricInputError(f"cutoff must lie in (0, 1), got {cutoff}")
-    view_w = _masks(mask, "mask", n, h, w)[:, 0] if mask is not None else None
-    ref_w = _masks(reference_mask, "reference_mask", 1, h, w)[:, 0] if reference_mask is not None else None
+    view_w = checked_masks(mask, "mask", n, h, w)[:, 0] if mask is not None else None
+    ref_w = checked_masks(reference_mask, "reference_mask", 1, h, w)[:, 0] if reference_mask is not None else None
 
     ref_share = _hf_share(_luma(ref)[0], None if ref_w is None else ref_w[0], cutoff)
     if ref_share is None or ref_share < _FLAT_HF_SHARE:

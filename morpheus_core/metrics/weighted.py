@@ -96,7 +96,7 @@ from torch import Tensor
 from morpheus_core.devices import pick_device
 from morpheus_core.imaging import batch_to_uint8_hwc
 from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE
-from morpheus_core.metrics.weighted_models import MANIQA_FILE, METRIC_SPECS, ManiqaOnnx, _Clip
+from morpheus_core.metrics.weighted_models import MANIQA_FILE, METRIC_SPECS, LoadedClip, ManiqaOnnx
 from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root, spec_named
 
 log = logging.getLogger(__name__)
@@ -243,7 +243,7 @@ class WeightedMetrics:
         self.cfg = cfg or WeightedMetricsConfig()
         self.device = pick_device(self.cfg.device)
         self._lpips: dict[Path, LPIPS] = {}
-        self._clip: dict[Path, _Clip] = {}
+        self._clip: dict[Path, LoadedClip] = {}
         self._maniqa: dict[Path, ManiqaOnnx] = {}
         self._load_errors: dict[tuple[str, Path], str] = {}
 
@@ -301,14 +301,14 @@ class WeightedMetrics:
             self._maniqa[folder] = ManiqaOnnx(folder / MANIQA_FILE)
         return self._maniqa[folder]
 
-    def _load_clip(self, folder: Path) -> _Clip:
+    def _load_clip(self, folder: Path) -> LoadedClip:
         """One CLIPModel per folder, shared by CLIP similarity and CLIP-IQA."""
         if folder not in self._clip:
             from transformers import CLIPImageProcessor, CLIPModel
 
             model = CLIPModel.from_pretrained(str(folder), local_files_only=True).to(self.device).eval()
             processor = CLIPImageProcessor.from_pretrained(str(folder), local_files_only=True)
-            self._clip[folder] = _Clip(model, processor)
+            self._clip[folder] = LoadedClip(model, processor)
         return self._clip[folder]
 
     # -- running ----------------------------------------------------------------------------------
@@ -332,7 +332,7 @@ class WeightedMetrics:
         scores = model.scores(views, self.cfg.batch_size)
         return float(scores.mean()), _floats(scores), f"MANIQA mean of {len(views)} views at {model.size}"
 
-    def _image_embeddings(self, clip: _Clip, images: Tensor) -> Tensor:
+    def _image_embeddings(self, clip: LoadedClip, images: Tensor) -> Tensor:
         """L2-normalised projected CLIP image embeddings (N×D), in batches of ``batch_size``."""
         out: list[Tensor] = []
         dtype = next(clip.model.parameters()).dtype
@@ -345,7 +345,7 @@ class WeightedMetrics:
             out.append(F.normalize(clip.model.visual_projection(pooled).float(), dim=-1))
         return torch.cat(out)
 
-    def _clipiqa(self, clip: _Clip, views: Tensor) -> Tensor:
+    def _clipiqa(self, clip: LoadedClip, views: Tensor) -> Tensor:
         prompts = [p for pair in self.cfg.clipiqa_prompts for p in pair]
         tokens = clip.tokenizer(prompts, padding=True, return_tensors="pt")
         text = clip.model.text_model(input_ids=tokens["input_ids"].to(self.device),

@@ -1,5 +1,5 @@
 """The models behind the weighted QA metrics (``morpheus_core.metrics.weighted``): the folder and files each
-metric needs (``METRIC_SPECS``) and the wrappers that hold loaded models (``_Clip``, ``ManiqaOnnx``).
+metric needs (``METRIC_SPECS``) and the wrappers that hold loaded models (``LoadedClip``, ``ManiqaOnnx``).
 
 The MANIQA ONNX contract that ``ManiqaOnnx`` checks, and the export recipe for ``maniqa.onnx``, are in the
 ``morpheus_core.metrics.weighted`` docstring (the skip detail of a missing ``maniqa.onnx`` points there).
@@ -52,7 +52,9 @@ METRIC_SPECS: tuple[ModelSpec, ...] = (
 
 
 @dataclass
-class _Clip:
+class LoadedClip:
+    """A loaded CLIP: the model, its image processor, and its tokenizer once a text-prompted metric needs it."""
+
     model: Any  # transformers.CLIPModel
     processor: Any  # transformers.CLIPImageProcessor
     tokenizer: Any | None = None
