@@ -49,7 +49,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 _OUR_CODE = (f"{os.sep}morpheus_core{os.sep}", f"{os.sep}ops{os.sep}")
 
 
-class _OpCounter(TorchDispatchMode):
+class OpCounter(TorchDispatchMode):
     """Counts the aten operators dispatched (backward and optimiser included): on a GPU each is a
     kernel launch or a view, so the count tracks the host work of launch-bound stages on any device.
     Each is charged to the innermost line of our code that issued it, so the sites to work on come out
@@ -72,14 +72,14 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def _ops_per_step(task: object, gen: torch.Generator, sites: int, extra: int = 2) -> dict[str, Any]:
+def ops_per_step(task: object, gen: torch.Generator, sites: int, extra: int = 2) -> dict[str, Any]:
     """Operators of a steady-state step: a loop of 2 + ``extra`` steps minus a loop of 2, over ``extra``.
     Both loops pay the same set-up (the last-good-state copy), the same first two steps (a loop's
     second step still issues extra operators) and one log row at their last step, so those cancel
     and only the steady-state steps in between remain."""
     counters = []
     for steps in (2, 2 + extra):
-        with _OpCounter() as counter:
+        with OpCounter() as counter:
             run_loop(task, LoopConfig(steps, log_every=10_000, grad_clip=None), gen, "ops")  # type: ignore[arg-type]
         counters.append(counter)
     short, long = counters
@@ -101,7 +101,7 @@ def _time(task: object, steps: int, warmup: int, dev: torch.device, gen: torch.G
     ms = (time.perf_counter() - start) / steps * 1000
     peak = torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else float("nan")
     return {"ms_per_step": round(ms, 2), "peak_gib": round(peak, 2), "skipped": res.guards.skipped,
-            **_ops_per_step(task, gen, sites)}
+            **ops_per_step(task, gen, sites)}
 
 
 def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path, store_root: Path,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from benchmarks.stage_speed import _OpCounter, _ops_per_step
+from benchmarks.stage_speed import OpCounter, ops_per_step
 from ops.engine.loop import LoopConfig, run_loop
 from tests.test_optimise import Regression
 
@@ -18,9 +18,9 @@ def warmed(gen: torch.Generator) -> Regression:
 
 def test_the_loop_set_up_and_log_row_cancel_out_of_the_per_step_count() -> None:
     gen = torch.Generator().manual_seed(2)
-    two, four = (_ops_per_step(warmed(gen), gen, sites=50, extra=n) for n in (2, 4))
+    two, four = (ops_per_step(warmed(gen), gen, sites=50, extra=n) for n in (2, 4))
     assert two["aten_ops_per_step"] == four["aten_ops_per_step"] > 0  # the same step, however many
-    with _OpCounter() as one_step_loop:
+    with OpCounter() as one_step_loop:
         run_loop(warmed(gen), LoopConfig(1, log_every=10_000, grad_clip=None), gen, "ops")
     assert one_step_loop.calls > 2 * two["aten_ops_per_step"]  # the set-up copy and the log row's evaluation
     assert sum(two["op_sites"].values()) == two["aten_ops_per_step"]  # every op charged to one site
