@@ -28,7 +28,7 @@ from typing import Any
 import torch
 import trimesh
 
-from benchmarks.quality import _write, machine
+from benchmarks.quality import machine, write_results
 from morpheus_core.cameras import orbit
 from morpheus_core.export.gltf import export_glb
 from morpheus_core.export.uv_bake import BakeConfig, bake_uv
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                "command": "python -m benchmarks.bake_fidelity " + " ".join(sys.argv[1:] if argv is None else argv),
                "wall_s": time.perf_counter() - start, "about": about, "rows": rows, "args": {
                    k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
-    _write(args.results, args.name, payload, markdown(rows))
+    write_results(args.results, args.name, payload, markdown(rows))
     return 0
 
 

@@ -29,7 +29,7 @@ import torch
 
 from benchmarks.early_stop import BASES, RESULTS, oracle_work, variant_schedule
 from benchmarks.oracle import OracleConfig
-from benchmarks.quality import SIZES, _write, machine, worker_init
+from benchmarks.quality import SIZES, machine, worker_init, write_results
 from benchmarks.scene_eval import EvalConfig, Reconstruction, evaluate, glb_output, mesh_output, novel_cameras
 from benchmarks.scene_runs import photo_path, run_scene, schedule_store, stage_wall_s
 from benchmarks.scenes import make_scenes
@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         print("no bake records", file=sys.stderr)
         return 1
     rows = summarise(records)
-    _write(args.results, args.name, {
+    write_results(args.results, args.name, {
         "title": "What the bake loses: GLB against the texture stage", "machine": records[0]["machine"],
         "date": records[-1]["date"], "wall_s": time.perf_counter() - start,
         "command": "python -m benchmarks.bake_gap " + " ".join(argv if argv is not None else sys.argv[1:]),

@@ -35,7 +35,7 @@ import torch
 
 from benchmarks.error_time import POINTS, run_error_time
 from benchmarks.oracle import ORACLE_KINDS, OracleConfig
-from benchmarks.quality import SIZES, _write, machine, worker_init
+from benchmarks.quality import SIZES, machine, worker_init, write_results
 from benchmarks.scene_eval import EvalConfig
 from benchmarks.scene_runs import Schedule, photo_path, schedule_store
 from benchmarks.scenes import SCENE_NAMES, make_scenes
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
                "schedules": list(dict.fromkeys(r["base"] for r in records)), "rows": rows,
                "records_file": f"{name}.records.jsonl",
                "about": __doc__.split("\n\n")[1].replace("\n", " ")}
-    _write(args.results, name, payload, markdown(rows, seeds))
+    write_results(args.results, name, payload, markdown(rows, seeds))
     print(json.dumps([{k: r[k] for k in ("schedule", "scene", "fixed_novel_psnr", "early_novel_psnr",
                                           "fixed_wall_s", "early_wall_s")} for r in rows], indent=1))
     return 1 if failed else 0

@@ -35,7 +35,7 @@ import torch
 
 from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
-from benchmarks.prior_speed import _build
+from benchmarks.prior_speed import build_priors
 from benchmarks.timing import sync_device
 from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.execution import apply_execution, current_execution
@@ -78,7 +78,7 @@ class Rig:
         self.cfg, self.dev, self.refs, self.work = cfg, dev, refs, work
         dtype = torch.float16 if dev.type == "cuda" else torch.float32
         runtime = PriorRuntime(str(dev), dtype, channels_last=dev.type == "cuda", accel=cfg.priors.accel)
-        built = _build(scale, runtime, 0, with_2d=True)
+        built = build_priors(scale, runtime, 0, with_2d=True)
         self.models = {"3d": built.zero123, "2d": built.image2d}
         self.nerf_dir: Path | None = None
         self.dmtet_dir: Path | None = None

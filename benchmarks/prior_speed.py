@@ -58,8 +58,9 @@ class Rig:
     loras: ObjectLoras | None
 
 
-def _build(scale: str, runtime: PriorRuntime, n_objects: int, with_2d: bool, seed: int = 0) -> Rig:
-    """Fresh random networks on the device (built there directly: fast even at full size)."""
+def build_priors(scale: str, runtime: PriorRuntime, n_objects: int, with_2d: bool, seed: int = 0) -> Rig:
+    """A ``Rig`` of fresh random priors on the device, with references for ``n_objects`` objects (built there
+    directly: fast even at full size)."""
     with torch.device(runtime.device):
         z = zero123_parts(scale, seed)
         zero123 = Zero123Prior(z.unet, z.vae, z.image_encoder, z.image_processor, z.projection, runtime)
@@ -172,7 +173,7 @@ def main() -> None:
         for kind in args.kinds:
             rig = None
             try:
-                rig = _build(scale, runtime, max(batches), with_2d=kind == "stage2")
+                rig = build_priors(scale, runtime, max(batches), with_2d=kind == "stage2")
             except Exception as exc:  # one failing configuration must not stop the others
                 rows += [{"kind": kind, "mode": mode, "batch": b, "error": f"build: {exc!r}"} for b in batches]
                 traceback.print_exc()

@@ -115,7 +115,8 @@ def machine(device: str) -> str:
     return f"{platform.node()} ({platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__})"
 
 
-def _write(results: Path, stem: str, payload: dict[str, Any], markdown: str) -> None:
+def write_results(results: Path, stem: str, payload: dict[str, Any], markdown: str) -> None:
+    """Write a benchmark's ``<stem>.json`` (the payload) and ``<stem>.md`` (a header from it, then ``markdown``)."""
     results.mkdir(parents=True, exist_ok=True)
     atomic_write_text(results / f"{stem}.json", json.dumps(payload, indent=1, default=str, allow_nan=True) + "\n")
     if payload.get("from_records"):
@@ -281,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         records = by_seed[seeds[0]]
         judged = judge_all(by_seed, f"{size.ablation.label}, {oracle.kind} oracle, {args.device}")
         write_findings(args.results, judged)
-        _write(args.results, f"quality_ablations_{tag}", {
+        write_results(args.results, f"quality_ablations_{tag}", {
             **common, "title": "Ablations on synthetic scenes with oracle priors", "wall_s": time.perf_counter() - t0,
             "schedule": asdict(size.ablation), "scenes": list(names), "records": records,
             "seed_records": {str(k): v for k, v in by_seed.items()}, "findings": judged,
@@ -301,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         records = [r for part in run_calls(calls, args.jobs) for r in part]
         plot = plot_error_time(records, args.results / f"error_vs_time_{tag}.png",
                                f"Error against run time ({common['machine']})")
-        _write(args.results, f"error_vs_time_{tag}", {
+        write_results(args.results, f"error_vs_time_{tag}", {
             **common, "title": "Error against run time", "wall_s": time.perf_counter() - t0,
             "schedules": [asdict(s) for s in timing], "scenes": list(timing_names), "records": records,
             "about": _ABOUT_TIME.format(scenes=", ".join(timing_names), plot=plot.name)},
@@ -311,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         records = run_stability(scenes[size.stability_scene], size.stability, args.device, work, size.eval,
                                 oracle=oracle)
         bad = [r["entry"] for r in records if not (r["finished"] and r.get("finite_outputs"))]
-        _write(args.results, f"stability_{tag}", {
+        write_results(args.results, f"stability_{tag}", {
             **common, "title": "Stability on stiff and extreme settings", "wall_s": time.perf_counter() - t0,
             "schedule": asdict(size.stability), "records": records,
             "about": _ABOUT_STABILITY.format(scene=size.stability_scene, schedule=size.stability,

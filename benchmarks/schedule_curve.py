@@ -25,7 +25,7 @@ from typing import Any
 from benchmarks.early_stop import BASES, RESULTS
 from benchmarks.error_time import POINTS
 from benchmarks.findings import Finding, findings_markdown, judge_all, write_findings
-from benchmarks.quality import _write
+from benchmarks.quality import write_results
 
 METRICS = ("novel_psnr", "detail_psnr", "chamfer", "fscore")
 
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     if judged:
         write_findings(args.results, judged)
     flat = {o: {s: flattens(p) for s, p in c.items()} for o, c in curves.items()}
-    _write(args.results, args.name, {
+    write_results(args.results, args.name, {
         "title": "Error against schedule length", "machine": "; ".join(machines), "wall_s": 0.0,
         "date": max(r["date"] for r in records if r.get("date")), "from_records": True,
         "command": "python -m benchmarks.schedule_curve " + " ".join(argv if argv is not None else sys.argv[1:]),
