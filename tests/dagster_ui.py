@@ -16,6 +16,7 @@ import time
 import urllib.request
 from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO / "benchmarks" / "results" / "dagster_asset_graph.png"
@@ -56,7 +57,8 @@ def _location_status(base: str) -> list[dict] | None:
     return workspace.get("locationEntries")
 
 
-def _write_instance_config(home: Path) -> None:
+def write_instance_config(home: Path) -> None:
+    """A Dagster instance in ``home`` (``dagster.yaml``) quiet enough for screenshots."""
     home.mkdir(parents=True, exist_ok=True)
     # No telemetry, and no "Join the Dagster community" dialog over the pages.
     (home / "dagster.yaml").write_text("telemetry:\n  enabled: false\nnux:\n  enabled: false\n")
@@ -110,9 +112,9 @@ def serve(home: Path, log: Path, env: Mapping[str, str] | None = None) -> Iterat
             proc.wait(timeout=10)
 
 
-def _save_screenshot(driver, tmp_path: Path, rendered_ok: bool, kept: Path = SCREENSHOT) -> Path:
-    """To ``kept`` (a screenshot in the repository) when it is missing or MORPHEUS_UPDATE_SCREENSHOT=1 and the page
-    is right; otherwise to pytest's tmp dir."""
+def save_screenshot(driver: Any, tmp_path: Path, rendered_ok: bool, kept: Path = SCREENSHOT) -> Path:
+    """Save the browser's screenshot to ``kept`` (a screenshot in the repository) when it is missing or
+    MORPHEUS_UPDATE_SCREENSHOT=1 and the page is right; otherwise to pytest's tmp dir. Returns where it went."""
     target = tmp_path / kept.name
     if rendered_ok and (not kept.exists() or os.environ.get("MORPHEUS_UPDATE_SCREENSHOT") == "1"):
         target = kept

@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from tests.browser import chromium, needs_browser
-from tests.dagster_ui import RENDER_TIMEOUT_S, VIEWPORT, _save_screenshot, _write_instance_config, serve
+from tests.dagster_ui import RENDER_TIMEOUT_S, VIEWPORT, save_screenshot, serve, write_instance_config
 
 # The pipeline's assets: the graph must show at least these (so an empty graph cannot pass).
 PIPELINE_ASSETS = ("reference", "nerf", "dmtet", "texture", "bake", "qa")
@@ -90,7 +90,7 @@ def graph_url(base: str, groups: set[str]) -> str:
 def webserver(tmp_path: Path) -> Iterator[str]:
     """The repository's code location with its default settings over an empty instance."""
     home = tmp_path / "dagster_home"
-    _write_instance_config(home)
+    write_instance_config(home)
     with serve(home, tmp_path / "webserver.log") as base:
         yield base
 
@@ -204,7 +204,7 @@ def test_ui_shows_asset_graph(expected: Expected, webserver: str, browser, tmp_p
         time.sleep(0.5)
     if done:
         time.sleep(1.0)  # let the nodes' status colours (a separate query) arrive before the screenshot
-    shot = _save_screenshot(browser, tmp_path, rendered_ok=done)
+    shot = save_screenshot(browser, tmp_path, rendered_ok=done)
     print(f"asset graph rendered in {time.monotonic() - started:.1f} s; screenshot {shot}")
 
     where = f"(page {browser.current_url!r}, title {browser.title!r}, screenshot {shot})"

@@ -33,9 +33,9 @@ from tests.dagster_ui import (
     PREVIEW_SCREENSHOT,
     RENDER_TIMEOUT_S,
     VIEWPORT,
-    _save_screenshot,
-    _write_instance_config,
+    save_screenshot,
     serve,
+    write_instance_config,
 )
 
 # The photo materialised (tiny configuration) for the preview test, the asset whose page is opened, and checks
@@ -104,7 +104,7 @@ def deployment(tmp_path: Path) -> Deployment:
     env = settings_env(tiny)
     assert OrchestrationSettings.from_env(env) == tiny, "the webserver's code location would differ from the run's"
     home = tmp_path / "dagster_home"
-    _write_instance_config(home)
+    write_instance_config(home)
     with dg.DagsterInstance.from_config(str(home)) as instance:
         result = run_job(build_definitions(settings=tiny), instance, [PHOTO])  # registers the partition too
     assert result.success, f"materialising {PHOTO} failed"
@@ -273,7 +273,7 @@ def test_ui_shows_previews_and_checks(deployment: Deployment, deployment_webserv
     rendered = time.monotonic()
     shown = images["images"] if images else []
     ok = len(shown) == 1 and shown[0]["src"] == deployment.preview and shown[0]["natural"][0] > 0
-    shot = _save_screenshot(browser, tmp_path, rendered_ok=ok, kept=PREVIEW_SCREENSHOT)
+    shot = save_screenshot(browser, tmp_path, rendered_ok=ok, kept=PREVIEW_SCREENSHOT)
     print(f"checks read in {checked_at - started:.1f} s, preview shown in {rendered - checked_at:.1f} s; "
           f"screenshot {shot}")
 
