@@ -23,6 +23,8 @@ def test_list_keys_needs_no_photo_or_out(capsys: pytest.CaptureFixture[str]) -> 
     assert main(["run", "--list-keys"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
     assert len(lines) == len(describe_keys(preset("draft"))) and "nerf.loop.steps" in lines
+    assert not [line for line in lines.values() if "``" in line]  # plain text, not reStructuredText
+    assert "Alias MORPHEUS_HASHGRID" in lines["execution.hashgrid"]
     # --preset and --set still apply to what it lists.
     assert main(["run", "--list-keys", "--preset", "paper", "--set", "nerf.loop.steps=7"]) == 0
     lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}

@@ -14,6 +14,7 @@ import functools
 import inspect
 import itertools
 import json
+import re
 import textwrap
 import types
 import typing
@@ -172,10 +173,14 @@ def flat_keys(config: Any, prefix: str = "") -> list[str]:
     return [key for key, _, _ in describe_keys(config, prefix)]
 
 
+_RST_LITERAL = re.compile(r"``([^`]+)``")
+
+
 @functools.cache
 def field_docs(cls: type) -> dict[str, str]:
     """Each field's one-line doc: the string literal right after the field in the class body (an
-    attribute docstring, which IDEs show too), whitespace folded."""
+    attribute docstring, which IDEs show too), whitespace folded and reStructuredText literals
+    (````x````) shown as plain ``x`` on the command line (``--list-keys``)."""
     try:
         source = textwrap.dedent(inspect.getsource(cls))
     except (OSError, TypeError):
@@ -185,7 +190,7 @@ def field_docs(cls: type) -> dict[str, str]:
     for node, after in itertools.pairwise(body):
         if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
                 and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
-            docs[node.target.id] = " ".join(after.value.value.split())
+            docs[node.target.id] = _RST_LITERAL.sub(r"\1", " ".join(after.value.value.split()))
     return docs
 
 
