@@ -33,7 +33,7 @@ from ops.reporting.report import SECTIONS
 from ops.reporting.report_sections import worst_order
 from tests.browser import chromium, needs_browser
 from tests.catalog_rows import LOGGED_STAGES, synthetic_row
-from tests.test_report_work import totals
+from tests.report_page import totals
 
 T0 = dt.datetime(2026, 5, 4, 9, 0, tzinfo=dt.timezone.utc)
 HOSTILE = "<script>alert('x')</script> & \"quotes\""

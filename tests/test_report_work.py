@@ -34,6 +34,7 @@ from ops.stages.checks import QA_FILE
 from ops.stages.qa import QA_TURNTABLE_FILE
 from orchestration.resources import MorpheusResource
 from tests.catalog_rows import METRICS, synthetic_row
+from tests.report_page import totals
 
 T0 = dt.datetime(2026, 5, 4, 9, 0, tzinfo=dt.timezone.utc)
 
@@ -65,21 +66,6 @@ def finished_photo(store: Store, key: str, rng: random.Random, stages: tuple[str
             w.commit(Manifest(stage=stage, photo_key=key, fingerprint=Fingerprint({"photo": "ab" * 32}, "c", "1"),
                               wall_time_s=round(rng.uniform(1, 900), 3), device="cpu", preset="draft",
                               created_at=made.isoformat(timespec="seconds")))
-
-
-def totals(page: str) -> dict[str, object]:
-    """What must not change when a run finds everything cached: the wall-time table, the histograms and
-    the asset rows' metrics, the photos and the runs that did work."""
-    def fact(name: str) -> int:
-        m = re.search(rf"<td>{re.escape(name)}</td><td>(\d+)</td>", page)
-        assert m, name
-        return int(m.group(1))
-
-    walltime = re.search(r'<table class="walltime">.*?</table>', page)
-    assets = re.findall(r'<tr class="asset" data-photo-key="([^"]*)">(.*?)</tr>', page)
-    return {"walltime": walltime.group(0) if walltime else None, "photos": fact("photos"),
-            "runs": fact("runs that did work"), "histograms": re.findall(r"<figcaption>([^<]*)</figcaption>", page),
-            "assets": [(k, re.findall(r"<td>(.*?)</td>", cells)[:-1]) for k, cells in assets]}
 
 
 def _report(store: Store) -> str:
