@@ -45,10 +45,12 @@ OPTIMISING = ("nerf", "dmtet", "texture")
 STOPPING = ("nerf", "dmtet")
 # paper/10: the paper's schedule at a tenth of its steps, long enough for the NeRF stage to run 40 % of
 # its steps with all hash-grid levels on (the rule may stop it only then) and short enough for one device call.
-# paper/40 and paper/20 are the shorter points of the schedule curve (``benchmarks/schedule_curve.py``).
+# paper/40 and paper/20 are the shorter points of the schedule curve (``benchmarks/schedule_curve.py``);
+# fast/20 is the fast preset shortened as paper/20 is (``benchmarks/schedule_quality.py`` compares them).
 BASES = {s.label: s for s in (SIZES["cpu"].ablation, *SIZES["gpu"].timing,
                               Schedule("paper/40", "paper", steps=(250, 125, 125)),
-                              Schedule("paper/10", "paper", steps=(1000, 500, 500)))}
+                              Schedule("paper/10", "paper", steps=(1000, 500, 500)),
+                              Schedule("fast/20", "fast", steps=(125, 62, 62)))}
 METRICS = ("novel_psnr", "chamfer", "fscore")
 
 

@@ -5,8 +5,10 @@ on full-size architectures and random weights (compute does not depend on the we
 Zero123 SDS for the NeRF and DMTet stages; Zero123 SDS + SD1.5/ControlNet/IP-Adapter VSD with one
 LoRA per object for the texture stage; the paper preset's step counts and resolutions. Each
 (stage, batch) row times steady-state steps after warm-up (CUDA graphs and compiled kernels are
-built during warm-up) and extrapolates to the paper's 10k + 5k + 5k steps; per-object set-up
-(NeRF → DMTet initialisation, writing outputs) is timed separately and added.
+built during warm-up) and extrapolates to the preset's schedule (the paper's 10k + 5k + 5k steps);
+a stage with coarse render phases (the ``fast`` preset) gets one row per phase, each extrapolated to
+that phase's steps; per-object set-up (NeRF → DMTet initialisation, writing outputs) is timed
+separately and added.
 
 Modes: ``before`` = the unoptimised path (eager priors, eager hash grid, one object at a time);
 ``after`` = the defaults now (priors from CUDA graphs, compiled hash grid) with several objects per
@@ -14,6 +16,7 @@ batch (``ops.engine.batch``).
 
     python benchmarks/paper_speed.py --device cuda --mode before --batches 1 --profile --tag h200
     python benchmarks/paper_speed.py --device cuda --mode after --batches 1 4 8 16 --profile 1 8 --tag h200
+    python benchmarks/paper_speed.py --device cuda --mode after --preset fast --batches 1 --tag fast_h100
     python benchmarks/paper_speed.py --device cpu --scale tiny --preset draft --batches 1 2 --steps 2  # smoke
 """
 
@@ -27,6 +30,7 @@ import sys
 import tempfile
 import time
 import traceback
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -45,6 +49,7 @@ from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
 from ops.engine.pipeline import run_photo
 from ops.engine.priors import RealSuite
+from ops.engine.render_phases import RenderSchedule
 from ops.engine.stage_job import StageJob
 from ops.engine.target import read_rgba
 from ops.stages.dmtet import start_dmtet
@@ -86,8 +91,9 @@ class Rig:
     def suite(self, key: str, ref: Path, roles: tuple[str, ...], vsd_roles: tuple[str, ...]) -> RealSuite:
         return RealSuite(self.cfg.priors, self.dev, key, read_rgba(ref, 256), roles, vsd_roles, self.models)
 
-    def job(self, stage: str, i: int) -> StageJob:
-        cfg, ref = self.cfg, self.refs[i % len(self.refs)]
+    def job(self, stage: str, i: int, phase: int = -1) -> StageJob:
+        """Object ``i``'s job of ``stage``, every step rendered as render phase ``phase`` (-1: the final one)."""
+        cfg, ref = phase_config(self.cfg, stage, phase), self.refs[i % len(self.refs)]
         key, out = f"obj{i}", self.work / f"{stage}_{i}"
         out.mkdir(parents=True, exist_ok=True)
         g = getattr(cfg, stage).guidance
@@ -102,6 +108,26 @@ class Rig:
         except BaseException:  # a LoRA left on the shared UNet would block the next row's object
             suite.close()
             raise
+
+
+def phase_config(cfg: PipelineConfig, stage: str, phase: int) -> PipelineConfig:
+    """``cfg`` with ``stage`` rendering every step as its render phase ``phase`` does (-1: the final one)."""
+    stage_cfg = getattr(cfg, stage)
+    if not stage_cfg.phases or phase == -1:
+        return replace(cfg, **{stage: replace(stage_cfg, phases=())})
+    p = stage_cfg.phases[phase]
+    return replace(cfg, **{stage: replace(stage_cfg, phases=(), resolution=p.resolution, n_views=p.n_views)})
+
+
+def phase_steps(cfg: PipelineConfig, stage: str) -> list[tuple[int, int]]:
+    """(phase, steps in it) of ``stage``'s schedule, the final phase as -1."""
+    sched = RenderSchedule.of(getattr(cfg, stage))
+    counts: dict[int, int] = {}
+    for step in range(sched.steps):
+        shape = sched.at(step)
+        index = -1 if shape.final else shape.index
+        counts[index] = counts.get(index, 0) + 1
+    return sorted(counts.items(), key=lambda kv: (kv[0] == -1, kv[0]))
 
 
 def build_rig(device: str, mode: str, preset_name: str, scale: str, overrides: list[str], store: Path,
@@ -195,24 +221,28 @@ def host_syncs(task: Any, dev: torch.device, gen: torch.Generator, steps: int = 
     return round(sum(per_step.values()), 1), f"host syncs per step (steady state, {steps} steps):\n{table}\n"
 
 
-def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, profile: bool) -> tuple[dict, str]:
-    """One (stage, batch) row; writes object 0's output when it is the first batch (the next stage's input)."""
+def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, profile: bool,
+                  phase: int = -1) -> tuple[dict, str]:
+    """One (stage, batch, render phase) row; writes object 0's output when it is the first batch of the
+    final phase (the next stage's input)."""
     dev = rig.dev
     t0 = time.perf_counter()
     jobs = []
     try:
         for i in range(batch):
-            jobs.append(rig.job(stage, i))
+            jobs.append(rig.job(stage, i, phase))
         setup_s = (time.perf_counter() - t0) / batch
         task = jobs[0].task if batch == 1 else BatchTask([j.task for j in jobs], [j.generator for j in jobs])
         gen = torch.Generator().manual_seed(0)
-        row = {"stage": stage, "batch": batch, "setup_s_per_object": round(setup_s, 2)}
+        shape = RenderSchedule.of(getattr(phase_config(rig.cfg, stage, phase), stage)).at(0)
+        row = {"stage": stage, "batch": batch, "phase": phase, "resolution": shape.resolution,
+               "n_views": shape.n_views, "setup_s_per_object": round(setup_s, 2)}
         row |= _timed_loop(task, steps, warmup, dev, gen)
         table = ""
         if profile:
             row["host_syncs_per_step"], syncs = host_syncs(task, dev, gen)
             table = _profile(task, dev, gen) + "\n" + syncs
-        if stage != "texture" and (rig.nerf_dir if stage == "nerf" else rig.dmtet_dir) is None:
+        if stage != "texture" and phase == -1 and (rig.nerf_dir if stage == "nerf" else rig.dmtet_dir) is None:
             jobs[0].finish(LoopResult([], GuardCounters(), None, 0, 0.0))
             out = rig.work / f"{stage}_0"
             if stage == "nerf":
@@ -229,24 +259,25 @@ def measure_stage(rig: Rig, stage: str, batch: int, steps: int, warmup: int, pro
             torch.cuda.empty_cache()
 
 
-def projections(rows: list[dict], schedule: dict[str, int]) -> list[dict]:
-    """Minutes per object and objects per GPU-hour per batch size (every stage measured at it)."""
+def projections(rows: list[dict], schedule: dict[str, list[tuple[int, int]]]) -> list[dict]:
+    """Minutes per object and objects per GPU-hour per batch size (every stage and render phase measured
+    at it); ``schedule``: each stage's (render phase, steps in it)."""
     out = []
     for batch in sorted({r["batch"] for r in rows}):
-        per = {r["stage"]: r for r in rows if r["batch"] == batch and "ms_per_step" in r}
-        if set(per) != set(STAGES):
+        per = {(r["stage"], r.get("phase", -1)): r for r in rows if r["batch"] == batch and "ms_per_step" in r}
+        if any((s, p) not in per for s in STAGES for p, _ in schedule[s]):
             continue
-        stage_min = {s: per[s]["ms_per_step"] * schedule[s] / batch / 60000 + per[s]["setup_s_per_object"] / 60
-                     for s in STAGES}
+        stage_min = {s: sum(per[(s, p)]["ms_per_step"] * n for p, n in schedule[s]) / batch / 60000
+                     + per[(s, -1)]["setup_s_per_object"] / 60 for s in STAGES}
         total = sum(stage_min.values())
         out.append({"batch": batch, **{f"{s}_min": round(v, 2) for s, v in stage_min.items()},
                     "min_per_object": round(total, 2), "objects_per_gpu_hour": round(60 / total, 2),
-                    "peak_gib": max((per[s]["peak_gib"] or 0.0) for s in STAGES) or None})
+                    "peak_gib": max((r["peak_gib"] or 0.0) for r in per.values()) or None})
     return out
 
 
 def to_markdown(res: dict) -> str:
-    sched = res["schedule"]
+    sched = {s: sum(n for _, n in v) if isinstance(v, list) else v for s, v in res["schedule"].items()}
     lines = [f"# Paper schedule speed, mode `{res['mode']}` — {res['device']}, {res['date']}", "",
              f"torch {res['torch']}; full-size prior architectures with random weights ({res['scale']}); "
              f"priors accel `{res['accel']}`, compiled hash grid: {res['compiled']}, hash-grid kernels "
@@ -260,13 +291,16 @@ def to_markdown(res: dict) -> str:
              + ("the allocator's reserved peak during the timed steps (CUDA graphs keep their pools)."
                 if res.get("peak") == "reserved" else "max_memory_allocated during the timed steps (older runs: "
                 "this misses the activations CUDA graphs keep in their pools)."), "",
-             "| stage | batch | ms/step | ms per object-step | peak GiB | set-up s/object | warm-up s |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             "| stage | batch | render phase | ms/step | ms per object-step | peak GiB | set-up s/object | warm-up s |",
+             "|---|---:|---|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
         if "error" in r:
-            lines.append(f"| {r['stage']} | {r['batch']} | error: {r['error'][:120]} | | | | |")
+            lines.append(f"| {r['stage']} | {r['batch']} | {r.get('phase', -1)} | error: {r['error'][:120]} | | | | |")
             continue
-        lines.append(f"| {r['stage']} | {r['batch']} | {r['ms_per_step']} | {r['ms_per_step'] / r['batch']:.1f} | "
+        phase = (f"{'final' if r.get('phase', -1) == -1 else r['phase']}: {r['resolution']} px × {r['n_views']} views"
+                 if "resolution" in r else "final")
+        lines.append(f"| {r['stage']} | {r['batch']} | {phase} | {r['ms_per_step']} | "
+                     f"{r['ms_per_step'] / r['batch']:.1f} | "
                      f"{r['peak_gib']} | {r['setup_s_per_object']} | {r['warmup_s']} |")
     lines += ["", "| batch | NeRF min | DMTet min | texture min | **min / object** | **objects / GPU-hour** | "
               "peak GiB |", "|---:|---:|---:|---:|---:|---:|---:|"]
@@ -316,8 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg, dev, accel = rig.cfg, rig.dev, rig.cfg.priors.accel
     rows: list[dict] = []
     profiles: list[str] = []
-    schedule = {"nerf": cfg.nerf.loop.steps, "dmtet": cfg.dmtet.loop.steps,
-                "texture": cfg.texture.loop.steps}
+    schedule = {s: phase_steps(cfg, s) for s in STAGES}
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine()
     stem = args.out / f"paper_speed_{args.mode}_{args.tag}"
     args.out.mkdir(parents=True, exist_ok=True)
@@ -341,15 +374,15 @@ def main(argv: list[str] | None = None) -> int:
     for needed in STAGES[:STAGES.index(args.stages[0])]:  # the first timed stage's inputs: short runs, not reported
         measure_stage(rig, needed, 1, 2, 2, False)
     for stage in args.stages:
-        for batch in sorted(args.batches):
-            try:
-                profiled = args.profile is not None and batch in (args.profile or [1])
-                row, table = measure_stage(rig, stage, batch, args.steps, args.warmup, profiled)
+        for batch, (phase, _) in [(b, p) for b in sorted(args.batches) for p in reversed(schedule[stage])]:
+            try:  # the final phase first: it writes the next stage's input
+                profiled = args.profile is not None and batch in (args.profile or [1]) and phase == -1
+                row, table = measure_stage(rig, stage, batch, args.steps, args.warmup, profiled, phase)
                 if table:
                     profiles.append(f"## {stage}, batch {batch}, mode {args.mode}\n{table}")
             except Exception as exc:  # e.g. out of memory at a large batch: record it, go on
                 traceback.print_exc()
-                row = {"stage": stage, "batch": batch, "error": repr(exc)[:300]}
+                row = {"stage": stage, "batch": batch, "phase": phase, "error": repr(exc)[:300]}
                 if dev.type == "cuda":
                     torch.cuda.empty_cache()
             rows.append(row)

@@ -113,9 +113,10 @@ class BatchTask:
         tasks = [self.tasks[i] for i in live]
         bindings = merge_bindings([t.suite.bindings(r.cameras, r.novel) for t, r in zip(tasks, rendered, strict=True)])
         novel = torch.cat([r.novel for r in rendered])
+        photos = torch.cat([t.target_at(r.reference.shape[-1]).rgb for t, r in zip(tasks, rendered, strict=True)])
         lead = tasks[0]
         out = hybrid_guidance(lead.guidance, bindings, lead.schedule, novel, step,
-                              torch.cat([r.reference for r in rendered]), torch.cat([t.target.rgb for t in tasks]),
+                              torch.cat([r.reference for r in rendered]), photos,
                               [self.generators[i] for i in live], objects=len(live))
         extra = torch.stack([r.extra_loss.float() for r in rendered]).sum()
         terms = {f"{i}/{k}": v for i, r in zip(live, rendered, strict=True) for k, v in r.terms.items()}

@@ -26,6 +26,7 @@ from morpheus_core.render.output import RenderOutput
 from ops.engine.early_stop import converged
 from ops.engine.loop import LoopConfig, StepOutput
 from ops.engine.priors import PriorSuite
+from ops.engine.render_phases import RenderSchedule, StepShape
 from ops.engine.target import ReferenceTarget, reference_psnr
 
 
@@ -55,16 +56,19 @@ def step_output(out: GuidanceOutput, extra_loss: Tensor, terms: dict[str, Tensor
 
 
 class GuidedTask(ABC):
-    """A ``StageTask`` over ``modules`` trained by one Adam over ``groups`` under ``guidance`` for a
-    stage of ``steps`` steps."""
+    """A ``StageTask`` over ``modules`` trained by one Adam over ``groups`` under ``guidance``, its steps
+    rendered as ``renders`` says (``target`` is the photo at the final render size)."""
 
-    def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings, steps: int,
-                 modules: dict[str, nn.Module], groups: list[dict[str, Any]], device: torch.device) -> None:
+    def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings,
+                 renders: RenderSchedule, modules: dict[str, nn.Module], groups: list[dict[str, Any]],
+                 device: torch.device) -> None:
         self.target, self.suite, self.device = target, suite, device
+        self.renders = renders
+        self._targets = {target.resolution: target}
         self.modules = modules
         # The loop's device-side guards skip a step with a non-finite render (its prior outputs or its
         # loss are then non-finite); the guidance's own check would stop the host three times a step.
-        self.guidance = replace(guidance.build(steps), check_inputs=False)
+        self.guidance = replace(guidance.build(renders.steps), check_inputs=False)
         self.schedule = NoiseSchedule()
         self.opt = adam(groups)
         self.shared_by = 1
@@ -73,15 +77,26 @@ class GuidedTask(ABC):
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {"adam": self.opt}
 
+    def shape(self, step: int) -> StepShape:
+        """What step ``step`` renders (its render phase)."""
+        return self.renders.at(step)
+
+    def target_at(self, resolution: int) -> ReferenceTarget:
+        """The photo at a render size of this stage's phases (made once per size)."""
+        if resolution not in self._targets:
+            self._targets[resolution] = self.target.resized(resolution)
+        return self._targets[resolution]
+
     @abstractmethod
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
-        """This step's renders (reference view and random views) and the stage's own losses."""
+        """This step's renders (reference view and random views, at ``shape(step)``) and the stage's
+        own losses."""
 
     def step(self, step: int, generator: torch.Generator) -> StepOutput:
         """One step's loss: the reference view and random views under the guidance."""
         r = self.render_step(step, generator)
         out = hybrid_guidance(self.guidance, self.suite.bindings(r.cameras, r.novel), self.schedule, r.novel, step,
-                              r.reference, self.target.rgb, generator)
+                              r.reference, self.target_at(r.reference.shape[-1]).rgb, generator)
         return step_output(out, r.extra_loss, r.terms, bool(self.guidance.needs_finetuned))
 
     @abstractmethod
@@ -107,8 +122,8 @@ class GuidedTask(ABC):
 
     def last_phase(self, step: int) -> bool:
         """Whether the stage's own schedule has reached its last phase by ``step``: a stage never
-        stops inside an earlier one (the NeRF stage overrides this for its hash-grid levels)."""
-        return True
+        stops inside a coarse render phase (the NeRF stage adds its hash-grid levels)."""
+        return step >= self.renders.final_from()
 
     def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig,
                    metric: str = "ref_psnr") -> bool:

@@ -75,10 +75,23 @@ class PhotoOutcome:
         return None
 
 
+# Settings added after finished outputs existed, with their defaults: a record leaves them out while
+# they hold their default, so that adding a setting did not make every finished output stale.
+ADDED_SETTINGS: dict[str, Any] = {"phases": []}
+
+
 def stage_config_record(config: dict[str, Any]) -> dict[str, Any]:
     """A stage's config (``StageWork.config``) as plain JSON data: what its manifest records and its
-    fingerprint's config hash is of."""
-    return json.loads(json.dumps(to_dict(config), default=str))
+    fingerprint's config hash is of (``ADDED_SETTINGS`` at their defaults left out)."""
+    record = json.loads(json.dumps(to_dict(config), default=str))
+    stack = [record]
+    while stack:
+        node = stack.pop()
+        for name, default in ADDED_SETTINGS.items():
+            if name in node and node[name] == default:
+                del node[name]
+        stack.extend(v for v in node.values() if isinstance(v, dict))
+    return record
 
 
 def output_digest(manifest: Manifest) -> str:

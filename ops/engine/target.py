@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
@@ -44,6 +45,22 @@ class ReferenceTarget:
         alpha = rgba[3:4]
         rgb = rgba[:3] * alpha + (1.0 - alpha)
         return cls(rgb[None], alpha[None], reference_camera(orbit).to(device))
+
+    @property
+    def resolution(self) -> int:
+        return int(self.rgb.shape[-1])
+
+    def resized(self, resolution: int) -> ReferenceTarget:
+        """The same photo at another render size (a coarse render phase); the camera is unchanged."""
+        if resolution == self.resolution:
+            return self
+        def resize(x: Tensor) -> Tensor:
+            # Smaller: the mean of the pixels each coarse pixel covers, as a render at that size averages.
+            if resolution < self.resolution:
+                return F.adaptive_avg_pool2d(x, resolution)
+            return F.interpolate(x, (resolution, resolution), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+
+        return ReferenceTarget(resize(self.rgb), resize(self.mask), self.camera)
 
 
 def novel_cameras(n: int, generator: torch.Generator, device: torch.device,

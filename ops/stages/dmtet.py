@@ -48,6 +48,7 @@ from ops.engine.loop import BadStep, LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
 from ops.engine.progress import Heartbeat, ProgressFn
+from ops.engine.render_phases import Phase, RenderSchedule, check_phases
 from ops.engine.stage import Stage, StageContext, StageWork, optimising
 from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
@@ -69,6 +70,9 @@ class DMTetStageConfig:
     """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
     """Random orbit views rendered for the 3D prior each step, besides the reference view."""
+    phases: tuple[Phase, ...] = ()
+    """Coarse render phases before ``resolution`` and ``n_views`` (``ops.engine.render_phases``): each
+    ``{until, resolution, n_views}`` holds while the step is below ``until`` × the stage's steps."""
     grid: int | None = None
     """Tet grid resolution (cells per side, ≥ 8); None: the plan's choice (else ``max_grid``); capped at max_grid."""
     max_grid: int = 128
@@ -111,6 +115,7 @@ class DMTetStageConfig:
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1 or self.max_grid < 4:
             raise ValueError("resolution must be ≥ 8, n_views ≥ 1 and max_grid ≥ 4")
+        check_phases(self.phases)
 
 
 def choose_grid(cfg: DMTetStageConfig, planned: int | None) -> int:
@@ -123,7 +128,7 @@ class DMTetTask(GuidedTask):
                  texture: TextureField, device: torch.device, teacher: Silhouettes | None = None) -> None:
         self.cfg, self.dmtet, self.texture = cfg, dmtet, texture
         self.teacher = teacher if cfg.nerf_silhouette_weight > 0 else None
-        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, {"dmtet": dmtet, "texture": texture}, [
+        super().__init__(target, suite, cfg.guidance, RenderSchedule.of(cfg), {"dmtet": dmtet, "texture": texture}, [
             {"params": [dmtet.sdf], "lr": cfg.lr_sdf},
             {"params": [dmtet.deform], "lr": cfg.lr_deform},
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
@@ -137,14 +142,15 @@ class DMTetTask(GuidedTask):
             raise BadStep(str(exc)) from exc
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
-        cfg, r = self.cfg, self.cfg.resolution
+        cfg, shape = self.cfg, self.shape(step)
+        r = shape.resolution
         mesh = self.mesh()
         if mesh.num_faces == 0:
             raise BadStep("the DMTet surface is empty")
-        cams = novel_cameras(cfg.n_views, generator, self.device)
+        cams = novel_cameras(shape.n_views, generator, self.device)
         ref, novel_out = render_mesh_groups(mesh, [self.target.camera, cams], r, r, self.texture)
         novel = novel_out.rgb_chw()
-        m = mask_bce(ref.opacity_chw(), self.target.mask)
+        m = mask_bce(ref.opacity_chw(), self.target_at(r).mask)
         lap, nc = laplacian_smoothness(mesh), normal_consistency(mesh)
         reg = self.dmtet.sdf_regulariser()
         loss = (cfg.mask_weight * m + cfg.laplacian_weight * lap + cfg.normal_consistency_weight * nc

@@ -28,6 +28,7 @@ from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.render_phases import Phase, RenderSchedule, StepShape, check_phases
 from ops.engine.stage import Stage, StageContext, StageWork, optimising
 from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
@@ -43,6 +44,9 @@ class NerfStageConfig:
     """Render size (px) of the reference and novel views each step (the paper: 128)."""
     n_views: int = 1
     """Random orbit views rendered for the 3D prior each step, besides the reference view."""
+    phases: tuple[Phase, ...] = ()
+    """Coarse render phases before ``resolution`` and ``n_views`` (``ops.engine.render_phases``): each
+    ``{until, resolution, n_views}`` holds while the step is below ``until`` × the stage's steps."""
     model: NerfConfig = field(default_factory=NerfConfig)
     render: VolumeRenderConfig = field(default_factory=lambda: VolumeRenderConfig(n_samples=256, with_normals=False))
     occupancy: OccupancyGridConfig = field(default_factory=OccupancyGridConfig)
@@ -64,6 +68,7 @@ class NerfStageConfig:
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1:
             raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
+        check_phases(self.phases)
 
 
 def normal_smoothness(normal: Tensor, opacity: Tensor) -> Tensor:
@@ -82,7 +87,7 @@ class NerfTask(GuidedTask):
         self.field = NerfField(cfg.model, generator=generator).to(device)
         self.occupancy = OccupancyGrid(cfg.occupancy, cfg.model.bbox_radius).to(device)
         modules = {"field": self.field, "occupancy": self.occupancy}
-        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, modules, [
+        super().__init__(target, suite, cfg.guidance, RenderSchedule.of(cfg), modules, [
             {"params": list(self.field.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(self.field.density_mlp.parameters()) + list(self.field.albedo_mlp.parameters()),
              "lr": cfg.lr_mlp},
@@ -94,11 +99,14 @@ class NerfTask(GuidedTask):
         self._buffer: str | None = None  # resolved at the first step: a batch says by then that it holds this task
         self.samples_dropped = 0
 
-    def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool, key: str) -> Any:
+    def _render(self, cameras: Any, generator: torch.Generator, with_normals: bool, key: str,
+                shape: StepShape) -> Any:
         render_cfg = replace(self.cfg.render, stratified=True, with_normals=with_normals)
         occ = self.occupancy if self.cfg.use_occupancy else None
-        return render_volume(self.field, cameras, self.cfg.resolution, self.cfg.resolution, render_cfg, 1.0, occ,
-                             generator, self.budget, key)
+        r = shape.resolution
+        # One sample buffer per render and phase: a phase's ray count sizes its own buffer (and graph).
+        return render_volume(self.field, cameras, r, r, render_cfg, 1.0, occ, generator, self.budget,
+                             key if shape.final else f"{key}/phase{shape.index}")
 
     def _resolve_buffer(self) -> None:
         if self._buffer is None:
@@ -114,7 +122,7 @@ class NerfTask(GuidedTask):
 
     def _step_losses(self, ref: Any, cams: Any, novel: Any) -> RenderedStep:
         cfg = self.cfg
-        m = mask_bce(ref.opacity_chw(), self.target.mask)
+        m = mask_bce(ref.opacity_chw(), self.target_at(ref.rgb_chw().shape[-1]).mask)
         loss, terms = cfg.mask_weight * m, {"mask_bce": m.detach()}
         if cfg.normal_smooth_weight > 0:
             s = normal_smoothness(novel.normal, novel.opacity)
@@ -126,14 +134,15 @@ class NerfTask(GuidedTask):
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         self._prepare(step, generator)
-        ref = self._render(self.target.camera, generator, False, "reference")
-        cams = novel_cameras(self.cfg.n_views, generator, self.device)
-        novel = self._render(cams, generator, self.cfg.normal_smooth_weight > 0, "novel")
+        shape = self.shape(step)
+        ref = self._render(self.target.camera, generator, False, "reference", shape)
+        cams = novel_cameras(shape.n_views, generator, self.device)
+        novel = self._render(cams, generator, self.cfg.normal_smooth_weight > 0, "novel", shape)
         return self._step_losses(ref, cams, novel)
 
     def last_phase(self, step: int) -> bool:
         # Finer hash-grid levels still switching on: stopping now would leave them untrained.
-        return self.cfg.model.grid.levels_at(step) >= self.cfg.model.grid.n_levels
+        return super().last_phase(step) and self.cfg.model.grid.levels_at(step) >= self.cfg.model.grid.n_levels
 
     @torch.no_grad()
     def render_eval(self, cameras: Any, size: int | None = None) -> Any:

@@ -27,6 +27,7 @@ from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
 from ops.engine.priors import PriorsConfig, PriorSuite, build_suite
+from ops.engine.render_phases import Phase, RenderSchedule, check_phases
 from ops.engine.stage import Stage, StageContext, StageWork, optimising
 from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
@@ -45,6 +46,9 @@ class TextureStageConfig:
     """Render size (px) of the reference and novel views each step (the paper: 512)."""
     n_views: int = 1
     """Random orbit views rendered for the priors each step, besides the reference view."""
+    phases: tuple[Phase, ...] = ()
+    """Coarse render phases before ``resolution`` and ``n_views`` (``ops.engine.render_phases``): each
+    ``{until, resolution, n_views}`` holds while the step is below ``until`` × the stage's steps."""
     guidance: GuidanceSettings = field(default_factory=lambda: TEXTURE_GUIDANCE)
     """The paper's stage 2: 3D prior SDS full band + 2D prior VSD high-pass (r = 0.6, k2D = 3)."""
     lr_grid: float = 1e-2
@@ -59,20 +63,22 @@ class TextureStageConfig:
     def __post_init__(self) -> None:
         if self.resolution < 8 or self.n_views < 1:
             raise ValueError("resolution must be ≥ 8 and n_views ≥ 1")
+        check_phases(self.phases)
 
 
 class TextureTask(GuidedTask):
     def __init__(self, cfg: TextureStageConfig, target: ReferenceTarget, suite: PriorSuite, mesh: Mesh,
                  texture: TextureField, device: torch.device) -> None:
         self.cfg, self.mesh, self.texture = cfg, mesh, texture
-        super().__init__(target, suite, cfg.guidance, cfg.loop.steps, {"texture": texture}, [
+        super().__init__(target, suite, cfg.guidance, RenderSchedule.of(cfg), {"texture": texture}, [
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
         ], device)
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
-        r = self.cfg.resolution
-        cams = novel_cameras(self.cfg.n_views, generator, self.device)
+        shape = self.shape(step)
+        r = shape.resolution
+        cams = novel_cameras(shape.n_views, generator, self.device)
         ref, novel_out = render_mesh_groups(self.mesh, [self.target.camera, cams], r, r, self.texture)
         novel = novel_out.rgb_chw()
         return RenderedStep(cams, novel, ref.rgb_chw(), novel.new_zeros(()))
