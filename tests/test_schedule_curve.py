@@ -9,14 +9,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks import bake_gap, schedule_curve
-from benchmarks.error_time import POINTS
-
-
-def _record(base: str, scene: str, seed: int, psnr: float, oracle: str = "stochastic") -> dict:
-    points = [{"stage": s, "wall_s": 10.0 * (i + 1), "novel_psnr": psnr - 0.5 * (len(POINTS) - 1 - i),
-               "detail_psnr": psnr + 5, "chamfer": 0.01, "fscore": 0.99} for i, s in enumerate(POINTS)]
-    return {"base": base, "scene": scene, "seed": seed, "early_stop": False, "oracle": oracle, "points": points,
-            "machine": "NVIDIA Test GPU, torch x", "date": "2026-12-07"}
+from tests.bench_records import glb_record
 
 
 def _records(rng: random.Random, gain: float, noise: float) -> list[dict]:
@@ -27,7 +20,7 @@ def _records(rng: random.Random, gain: float, noise: float) -> list[dict]:
         start, offsets = rng.uniform(18, 30), [rng.uniform(-noise, noise) for _ in range(3)]
         offsets[:2] = [-noise, noise]  # the spread is the full 2 × noise
         for i, base in enumerate(("paper/40", "paper/20", "paper/10")):
-            out += [_record(base, scene, seed, start + i * gain + offsets[seed] + rng.uniform(-0.02, 0.02))
+            out += [glb_record(base, scene, seed, start + i * gain + offsets[seed] + rng.uniform(-0.02, 0.02))
                     for seed in (0, 1, 2)]
     return out
 
@@ -48,7 +41,7 @@ def test_a_rising_curve_moves_and_a_flat_one_flattens() -> None:
 
 def test_more_steps_finding_and_the_written_files(tmp_path: Path) -> None:
     rng = random.Random(8)
-    records = [*_records(rng, gain=0.8, noise=0.05), _record("paper/10", "mug", 0, 30.0, "noise-free")]
+    records = [*_records(rng, gain=0.8, noise=0.05), glb_record("paper/10", "mug", 0, 30.0, "noise-free")]
     files = [tmp_path / "st.records.jsonl"]
     files[0].write_text("".join(json.dumps(r) + "\n" for r in records))
     assert schedule_curve.main(["--records", str(files[0]), "--results", str(tmp_path), "--name", "c"]) == 0
