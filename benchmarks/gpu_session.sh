@@ -23,6 +23,8 @@
 #   (benchmarks/results/vae_precision_h200.md).
 # curve: fixed schedules under each oracle at once (ES_RUNS="stochastic:paper/40,paper/10:0,1:8 noise-free:paper/10:0:4",
 #   ES_SCENES), then the bake variants of benchmarks/bake_gap.py on the paper/10 stores (BAKE_TIMEOUT s, BAKE_NAME).
+# fast: CUDA tests of the render phases, paper_speed.py of the paper and fast presets in both orders, then a
+#   SIGKILL-and-resume check (FAST_ORDER, RESUME_SCENES; see the mode); carry outputs/gpu_refs.
 # es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
 #   ES_PATCH, both at once, on the defaults (the fixed schedules: --variants fixed); records named
 #   ${ES_NAME}_{ref,new}; summarise each with `python -m benchmarks.early_stop --from-records` and compare.
@@ -86,6 +88,33 @@ if [ "$mode" = curve ]; then
     timeout "$BAKE_TIMEOUT" python -m benchmarks.bake_gap --device cuda --work /tmp/es --jobs 8 \
       --records /tmp/bake_runs.jsonl --results "$out" --name "${BAKE_NAME:-bake_gap}" > "$out/bake_gap.log" 2>&1
     echo "bake_gap exit $?" >> "$out/bake_gap.log"
+  fi
+  exit 0
+fi
+if [ "$mode" = fast ]; then
+  # The fast preset's call: the CUDA tests of the render phases and the hash grid; paper_speed.py at batch 1
+  # for each preset of FAST_ORDER (default "paper fast fast paper": the A/B in both orders, one call);
+  # then, with RESUME_SCENES, SIGKILL-and-resume runs of fast/20 against RESUME_RECORDS (benchmarks/gpu_resume.py).
+  # Carry outputs/gpu_refs. Result names carry the GPU's own tag (h100, h200).
+  tag=$(nvidia-smi --query-gpu=name --format=csv,noheader | grep -o 'H[0-9]*' | head -1 | tr 'H' 'h')
+  MORPHEUS_TEST_DEVICE=cuda timeout "${FAST_TEST_TIMEOUT:-150}" python -m pytest -q -p no:cacheprovider \
+    tests/test_cuda.py tests/test_hashgrid_triton.py tests/test_render_phases.py tests/test_cuda_volume.py \
+    > "$out/pytest_cuda_fast.log" 2>&1
+  echo "pytest exit $?" >> "$out/pytest_cuda_fast.log"
+  i=0
+  for p in ${FAST_ORDER:-paper fast fast paper}; do
+    i=$((i + 1))
+    timeout "${SPEED_TIMEOUT:-150}" python benchmarks/paper_speed.py --device cuda --mode after --preset "$p" \
+      --batches 1 --steps "${FAST_STEPS:-10}" --warmup 4 --tag "${tag}_${p}_$i" --store outputs/gpu_refs \
+      --out "$out" > "$out/speed_${p}_$i.log" 2>&1
+    echo "exit $?" >> "$out/speed_${p}_$i.log"
+  done
+  if [ -n "${RESUME_SCENES:-}" ]; then
+    timeout "${RESUME_TIMEOUT:-240}" python -m benchmarks.gpu_resume --device cuda --schedule fast/20 \
+      --records "benchmarks/results/${RESUME_RECORDS:-schedule_quality_h200_stochastic.records.jsonl}" \
+      --scenes "$RESUME_SCENES" --seed 0 --stage "${RESUME_STAGE:-nerf}" --timeout 200 --work /tmp/gpu_resume \
+      --results "$out" --name "gpu_resume_$tag" > "$out/gpu_resume.log" 2>&1
+    echo "gpu_resume exit $?" >> "$out/gpu_resume.log"
   fi
   exit 0
 fi
