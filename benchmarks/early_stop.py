@@ -47,10 +47,16 @@ STOPPING = ("nerf", "dmtet")
 # its steps with all hash-grid levels on (the rule may stop it only then) and short enough for one device call.
 # paper/40 and paper/20 are the shorter points of the schedule curve (``benchmarks/schedule_curve.py``);
 # fast/20 is the fast preset shortened as paper/20 is (``benchmarks/schedule_quality.py`` compares them).
+# The CPU benchmark's schedule with half its steps, each stage's first half rendering four views at half
+# size: the fast preset's recipe at the CPU size (``benchmarks/schedule_quality.py`` compares it with bench-cpu).
+_BENCH_CPU_HALF_PHASED = Schedule("bench-cpu/2-phased", "draft", steps=(75, 40, 75), overrides=(
+    "texture.resolution=128", *(f'{s}.phases=[{{"until": 0.5, "resolution": {r}, "n_views": 4}}]'
+                                for s, r in (("nerf", 24), ("dmtet", 48), ("texture", 64)))))
 BASES = {s.label: s for s in (SIZES["cpu"].ablation, *SIZES["gpu"].timing,
                               Schedule("paper/40", "paper", steps=(250, 125, 125)),
                               Schedule("paper/10", "paper", steps=(1000, 500, 500)),
-                              Schedule("fast/20", "fast", steps=(125, 62, 62)))}
+                              Schedule("fast/20", "fast", steps=(125, 62, 62)),
+                              _BENCH_CPU_HALF_PHASED)}
 METRICS = ("novel_psnr", "chamfer", "fscore")
 
 

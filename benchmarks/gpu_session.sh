@@ -107,7 +107,7 @@ if [ "$mode" = fast ]; then
     echo "pytest exit $?" >> "$out/pytest_cuda_fast.log"
   fi
   i=0
-  for p in ${FAST_ORDER:-paper fast fast paper}; do
+  for p in ${FAST_ORDER-paper fast fast paper}; do  # FAST_ORDER="" times nothing
     i=$((i + 1))
     timeout "${SPEED_TIMEOUT:-150}" python benchmarks/paper_speed.py --device cuda --mode after --preset "$p" \
       --batches 1 --steps "${FAST_STEPS:-10}" --warmup 4 --tag "${tag}_${p}_$i" --store outputs/gpu_refs \
