@@ -88,7 +88,7 @@ class _Declaring:
     stages = STAGE_IDS
 
     def __init__(self, cfg: PipelineConfig) -> None:
-        self.cfg = cfg
+        self.seed, self.device, self.priors = cfg.seed, cfg.device, cfg.priors
 
     def dir(self, stage: str) -> Path:
         return Path("unused") / stage
@@ -114,7 +114,7 @@ def fingerprints(cfg: PipelineConfig) -> dict[str, Fingerprint]:
     ctx = _Declaring(cfg)
     out = {}
     for stage in STAGES:
-        work = stage.build(ctx)
+        work = stage.build(ctx, getattr(cfg, stage.id))
         out[stage.id] = Fingerprint(work.inputs, config_hash(stage_config_record(work.config)), stage.code_version)
     return out
 

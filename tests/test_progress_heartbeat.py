@@ -138,7 +138,7 @@ def test_qa_announces_its_measurements_and_beats(monkeypatch: pytest.MonkeyPatch
         return StageResult({"verdict": "pass"}, "none (qa)", "cpu")
 
     class Context:  # what the qa stage's body reads of a photo's run
-        cfg = tiny_config()
+        device = "cpu"
         stages = ("reference", "bake", "qa")
         key = "mug.jpg"
 
@@ -154,6 +154,6 @@ def test_qa_announces_its_measurements_and_beats(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(progress_module, "HEARTBEAT_S", BEAT)
     monkeypatch.setattr(qa_stage, "run_qa", lambda *a, **k: slow_qa(*a, phase=a[-1]))
     events = Events()
-    result = qa_stage.STAGE.build(Context()).body(tmp_path / "qa", None)  # type: ignore[arg-type]
+    result = qa_stage.STAGE.build(Context(), tiny_config().qa).body(tmp_path / "qa", None)  # type: ignore[arg-type]
     assert result.metrics["verdict"] == "pass"
     assert events[0].stage == "qa (turntable views)" and len(events) >= 4

@@ -30,7 +30,7 @@ from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
 from ops.engine.early_stop import whole_schedule_record
 from ops.engine.gpu_lease import GpuLease, leased_device, memory_hint
-from ops.engine.priors import WEIGHT_FREE, PriorSuite
+from ops.engine.priors import WEIGHT_FREE, PriorsConfig, PriorSuite
 from ops.engine.progress import ProgressEvent, ProgressFn
 from ops.engine.stage import StageWork
 from ops.engine.stage_ids import STAGE_IDS
@@ -149,6 +149,18 @@ class PhotoRun:
 
     # -- what the stages see (``StageContext``) -----------------------------------------------
 
+    @property
+    def seed(self) -> int:
+        return self.cfg.seed
+
+    @property
+    def device(self) -> str:
+        return self.cfg.device
+
+    @property
+    def priors(self) -> PriorsConfig:
+        return self.cfg.priors
+
     def dir(self, stage: str) -> Path:
         return self.store.stage_dir(self.key, stage)
 
@@ -205,7 +217,7 @@ class PhotoRun:
             raise ValueError(f"{self.key}: stage {stage!r} is not part of this run (stages: {self.stages})")
         declared = BY_ID[stage]
         inputs = {s: output_digest(self.upstream(s)) for s in declared.reads if s in self.stages}
-        work = declared.build(self)
+        work = declared.build(self, getattr(self.cfg, stage))
         key = ("config_hash", stage,
                tuple((k, id(v) if is_dataclass(v) else v) for k, v in sorted(work.config.items())))
         if key not in self.memo:

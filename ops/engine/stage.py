@@ -3,7 +3,9 @@
 A stage's id is its module name (``ops/stages/<id>.py``), its config key (``--set <id>.…``), its
 store folder (``<store>/<photo>/<id>/``) and its Dagster asset key. Each stage module declares one
 ``Stage``; ``ops.stages.STAGES`` orders them, and the pipeline, the presets, the Dagster assets and
-the QA checks all read that tuple.
+the QA checks all read that tuple. A stage's ``build`` gets its own config (the ``<id>`` section of
+the run's configuration) and the run context (``StageContext``: seed, device, priors, the photo's
+folders and upstream outputs), never the whole configuration.
 """
 
 from __future__ import annotations
@@ -11,15 +13,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from ops.engine.progress import ProgressFn
 from ops.engine.stage_job import StageJob, StageResult
 
 if TYPE_CHECKING:
     from assets_store.manifest import Manifest
-    from ops.config.presets import PipelineConfig
-    from ops.engine.priors import PriorSuite
+    from ops.engine.priors import PriorsConfig, PriorSuite
     from ops.stages.plan import StagePlan
 
 
@@ -28,8 +29,19 @@ class StageContext(Protocol):
 
     key: str
     photo: Path
-    cfg: PipelineConfig
     init_mesh: Path | None
+
+    @property
+    def seed(self) -> int:
+        """Seed of the fitting stages' random numbers."""
+
+    @property
+    def device(self) -> str:
+        """The run's torch device setting (``auto``, ``cpu``, ``cuda:1``…)."""
+
+    @property
+    def priors(self) -> PriorsConfig:
+        """Which priors guide the optimising stages, and how they run."""
 
     @property
     def plan(self) -> StagePlan | None: ...
@@ -71,8 +83,11 @@ def optimising(config: dict[str, Any], start: Callable[[Path], StageJob], ctx: S
     return StageWork(config, lambda out, ckpt: start(out).run(ckpt, ctx.progress()), start, inputs or {})
 
 
+C = TypeVar("C")
+
+
 @dataclass(frozen=True)
-class Stage:
+class Stage(Generic[C]):
     """One stage of the pipeline (see the module docstring for what ``id`` names).
 
     ``reads``: the stages whose outputs are its inputs (those of them this photo runs);
@@ -86,5 +101,6 @@ class Stage:
     preview: str
     gpu: bool
     description: str
-    build: Callable[[StageContext], StageWork]
+    build: Callable[[StageContext, C], StageWork]
+    """The stage's work for one photo, from the run context and the stage's own config."""
     replaced_by_init_mesh: bool = False

@@ -107,16 +107,14 @@ def bake_asset(reference_dir: Path, dmtet_dir: Path, texture_dir: Path, out_dir:
     return StageResult(metrics, "none (bake)", str(dev), notes)
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg
+def _build(ctx: StageContext, cfg: BakeStageConfig) -> StageWork:
     plan = ctx.plan
     faces = plan.export.value if plan is not None else None
 
     def body(out: Path, _ckpt: Path | None) -> StageResult:
-        return bake_asset(ctx.dir("reference"), ctx.dir("dmtet"), ctx.dir("texture"), out, cfg.bake, faces,
-                          cfg.device)
+        return bake_asset(ctx.dir("reference"), ctx.dir("dmtet"), ctx.dir("texture"), out, cfg, faces, ctx.device)
 
-    return StageWork({"bake": cfg.bake, "planned_faces": faces}, body)
+    return StageWork({"bake": cfg, "planned_faces": faces}, body)
 
 
 STAGE = Stage(

@@ -12,12 +12,9 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from ops.engine.stage_ids import current_stage_id
-
-if TYPE_CHECKING:
-    from ops.stages.qa import QAConfig
 
 QA_FILE = "qa.json"
 ERROR, WARN = "error", "warn"
@@ -83,7 +80,23 @@ def _guard_events(metrics: dict[str, Any]) -> int:
     return sum(int(v) for k, v in metrics.items() if k.startswith("guard_") and k != "guard_skipped_steps")
 
 
-def stage_checks(stage: str, metrics: dict[str, Any], cfg: QAConfig) -> list[QACheck]:
+class CheckThresholds(Protocol):
+    """The limits the stage checks compare against (``ops.stages.qa.QAConfig`` holds them)."""
+
+    @property
+    def min_ref_psnr(self) -> float: ...
+
+    @property
+    def min_uv_coverage(self) -> float: ...
+
+    @property
+    def min_area_fraction(self) -> float: ...
+
+    @property
+    def max_guard_events(self) -> int: ...
+
+
+def stage_checks(stage: str, metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
     """The checks of a producing stage (not ``qa``), from its manifest metrics."""
     out: list[QACheck] = []
     for spec in CHECKS.get(stage, ()):

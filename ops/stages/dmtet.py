@@ -291,18 +291,17 @@ def start_dmtet(reference_dir: Path, out_dir: Path, cfg: DMTetStageConfig, prior
     return StageJob("dmtet", task, generator, cfg.loop, finish, suite.close)
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg
+def _build(ctx: StageContext, cfg: DMTetStageConfig) -> StageWork:
     plan = ctx.plan
     grid = plan.dmtet_grid.value if plan is not None else None
-    config = {"dmtet": cfg.dmtet, "priors": cfg.priors, "prior_kind": ctx.prior_kind(cfg.dmtet.guidance.roles),
-              "seed": cfg.seed, "planned_grid": grid}
+    config = {"dmtet": cfg, "priors": ctx.priors, "prior_kind": ctx.prior_kind(cfg.guidance.roles),
+              "seed": ctx.seed, "planned_grid": grid}
     inputs = {} if ctx.init_mesh is None else {"init_mesh": file_sha256(ctx.init_mesh)}
 
     def start(out: Path) -> StageJob:
         nerf_dir = None if ctx.init_mesh is not None else ctx.dir("nerf")
-        return start_dmtet(ctx.dir("reference"), out, cfg.dmtet, cfg.priors, ctx.key, nerf_dir, ctx.init_mesh, grid,
-                           cfg.device, cfg.seed, ctx.suite("dmtet"), ctx.progress())
+        return start_dmtet(ctx.dir("reference"), out, cfg, ctx.priors, ctx.key, nerf_dir, ctx.init_mesh, grid,
+                           ctx.device, ctx.seed, ctx.suite("dmtet"), ctx.progress())
 
     return optimising(config, start, ctx, inputs)
 

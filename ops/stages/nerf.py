@@ -203,13 +203,11 @@ def small_field(levels: int = 8, log2_table: int = 15, hidden: int = 32) -> Nerf
     return NerfConfig(grid=grid, hidden=hidden)
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg
-    config = {"nerf": cfg.nerf, "priors": cfg.priors, "prior_kind": ctx.prior_kind(cfg.nerf.guidance.roles),
-              "seed": cfg.seed}
+def _build(ctx: StageContext, cfg: NerfStageConfig) -> StageWork:
+    config = {"nerf": cfg, "priors": ctx.priors, "prior_kind": ctx.prior_kind(cfg.guidance.roles), "seed": ctx.seed}
 
     def start(out: Path) -> StageJob:
-        return start_nerf(ctx.dir("reference"), out, cfg.nerf, cfg.priors, ctx.key, cfg.device, cfg.seed,
+        return start_nerf(ctx.dir("reference"), out, cfg, ctx.priors, ctx.key, ctx.device, ctx.seed,
                           ctx.suite("nerf"))
 
     return optimising(config, start, ctx)

@@ -286,8 +286,7 @@ def _finite_json(metrics: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()}
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg
+def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
     producers = [s for s in ctx.stages if s != "qa"]
     # Every producer is an input, the NeRF included (parts_kept renders it), so a changed NeRF
     # re-runs QA; with --init-mesh there is no NeRF stage and parts_kept is not measured.
@@ -297,10 +296,10 @@ def _build(ctx: StageContext) -> StageWork:
         upstream = {s: ctx.upstream(s).metrics for s in producers}
         prior = ctx.upstream("texture").prior
         with Heartbeat(ctx.progress(), "qa", announce=True) as beat:  # one line at least every 10 s
-            return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg.qa, upstream, prior,
-                          cfg.device, nerf_dir, beat.set_phase)
+            return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
+                          ctx.device, nerf_dir, beat.set_phase)
 
-    return StageWork({"qa": cfg.qa}, body)
+    return StageWork({"qa": cfg}, body)
 
 
 STAGE = Stage(

@@ -21,8 +21,7 @@ class ReferenceStageConfig:
     plan: PlanConfig = field(default_factory=PlanConfig)
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg.reference
+def _build(ctx: StageContext, cfg: ReferenceStageConfig) -> StageWork:
 
     def body(out: Path, _ckpt: Path | None) -> StageResult:
         info = prepare_reference(ctx.photo, out, cfg.prepare)

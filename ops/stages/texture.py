@@ -126,19 +126,18 @@ def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: Text
     return StageJob("texture", task, generator, cfg.loop, finish, suite.close)
 
 
-def _build(ctx: StageContext) -> StageWork:
-    cfg = ctx.cfg
+def _build(ctx: StageContext, cfg: TextureStageConfig) -> StageWork:
     plan = ctx.plan
     refine = plan is None or plan.highpass_refinement.action != "skip"
     reason = "" if plan is None else plan.highpass_refinement.reason
-    config = {"texture": cfg.texture, "priors": cfg.priors, "seed": cfg.seed, "planned_refine": refine,
-              "prior_kind": ctx.prior_kind(cfg.texture.guidance.roles)}
-    if cfg.texture.follow_plan and not refine:
-        return StageWork(config, lambda out, _ckpt: pass_through(ctx.dir("dmtet"), out, cfg.device, reason))
+    config = {"texture": cfg, "priors": ctx.priors, "seed": ctx.seed, "planned_refine": refine,
+              "prior_kind": ctx.prior_kind(cfg.guidance.roles)}
+    if cfg.follow_plan and not refine:
+        return StageWork(config, lambda out, _ckpt: pass_through(ctx.dir("dmtet"), out, ctx.device, reason))
 
     def start(out: Path) -> StageJob:
-        return start_texture(ctx.dir("reference"), ctx.dir("dmtet"), out, cfg.texture, cfg.priors, ctx.key,
-                             cfg.device, cfg.seed, ctx.suite("texture"))
+        return start_texture(ctx.dir("reference"), ctx.dir("dmtet"), out, cfg, ctx.priors, ctx.key,
+                             ctx.device, ctx.seed, ctx.suite("texture"))
 
     return optimising(config, start, ctx)
 
