@@ -16,11 +16,8 @@ from dagster._core.definitions.data_version import DATA_VERSION_TAG
 
 from assets_store.store import Store
 from ops.engine.pipeline import StageOutcome, output_digest
+from ops.migrations import RENAMED_ASSETS
 from orchestration.metadata import stage_metadata
-
-# Asset key before the renaming → stage id (``reference`` kept its key).
-RENAMED_ASSETS = {"nerf_field": "nerf", "dmtet_mesh": "dmtet", "refined_texture": "texture", "uv_asset": "bake",
-                  "qa_report": "qa"}
 
 
 def migrate_history(instance: dg.DagsterInstance, store: Store) -> dict[str, int]:

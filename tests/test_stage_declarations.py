@@ -13,11 +13,11 @@ import pytest
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
 from ops.config.tree import ConfigError, describe_keys
-from ops.engine.stage_ids import RENAMED_STAGES, STAGE_IDS, current_stage_id
+from ops.engine.stage_ids import STAGE_IDS, current_stage_id
+from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES
 from ops.stages import BY_ID, STAGES
 from ops.stages.checks import CHECKS
 from orchestration.definitions import build_definitions
-from orchestration.history import RENAMED_ASSETS
 
 
 def test_one_id_names_module_config_key_and_asset() -> None:

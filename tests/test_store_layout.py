@@ -20,7 +20,6 @@ from ops.config.tree import from_dict
 from ops.engine.early_stop import whole_schedule_record
 from ops.engine.pipeline import PhotoRun, run_photo
 from ops.engine.priors import PriorsConfig
-from ops.engine.stage_ids import RENAMED_STAGES
 from ops.engine.store_layout import (
     CONFIG_CHANGES,
     LAYOUT,
@@ -29,12 +28,13 @@ from ops.engine.store_layout import (
     migrate,
     open_store,
 )
+from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
 from ops.stages.nerf import NerfStageConfig
 from ops.stages.qa import QAConfig
 from ops.stages.texture import TextureStageConfig
-from orchestration.history import RENAMED_ASSETS, migrate_history
+from orchestration.history import migrate_history
 from tests.pipeline_helpers import PHOTOS, output_hashes, tiny_config
 
 KEY = "mug.jpg"

@@ -35,6 +35,7 @@ from ops.config.tree import ConfigError, apply_overrides
 from ops.engine.loop import LoopConfig
 from ops.engine.priors import PriorsConfig
 from ops.engine.render_phases import Phase
+from ops.migrations import RENAMED_KEYS
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
 from ops.stages.nerf import NerfStageConfig, small_field
@@ -131,11 +132,6 @@ def draft() -> PipelineConfig:
 
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {"paper": paper, "fast": fast, "standard": standard,
                                                     "draft": draft}
-
-
-# Keys renamed when every stage got one id (old prefix → new prefix); an old key still works, with a warning.
-RENAMED_KEYS = {"prepare.": "reference.prepare.", "plan.": "reference.plan.",
-                "dmtet.texture.": "dmtet.texture_field.", "bake.bake.": "bake.map."}
 
 
 def current_key(assignment: str) -> str:

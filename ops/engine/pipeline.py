@@ -36,6 +36,7 @@ from ops.engine.stage import StageWork
 from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
 from ops.engine.store_layout import adopt_layout1_checkpoint, checkpoint_path
+from ops.migrations import ADDED_SETTINGS
 from ops.stages import BY_ID, STAGES
 from ops.stages.plan import StagePlan, read_plan
 
@@ -73,11 +74,6 @@ class PhotoOutcome:
             if s.stage == stage and s.manifest is not None:
                 return s.manifest.metrics.get(name)
         return None
-
-
-# Settings added after finished outputs existed, with their defaults: a record leaves them out while
-# they hold their default, so that adding a setting did not make every finished output stale.
-ADDED_SETTINGS: dict[str, Any] = {"phases": []}
 
 
 def stage_config_record(config: dict[str, Any]) -> dict[str, Any]:

@@ -33,7 +33,8 @@ from assets_store.hashing import bytes_sha256, config_hash
 from assets_store.keys import is_safe_key
 from assets_store.manifest import MANIFEST_FILE, Fingerprint, Manifest
 from assets_store.store import CHECKPOINTS_DIR, Store
-from ops.engine.stage_ids import RENAMED_STAGES, STAGE_IDS
+from ops.engine.stage_ids import STAGE_IDS
+from ops.migrations import RENAMED_STAGES
 
 log = logging.getLogger("morpheus3d")
 

@@ -29,7 +29,8 @@ from assets_store.manifest import Manifest
 from assets_store.store import Store
 from ops.engine.artifacts import RUNLOG_FILE
 from ops.engine.pipeline import PhotoOutcome
-from ops.engine.stage_ids import RENAMED_STAGES, STAGE_IDS
+from ops.engine.stage_ids import STAGE_IDS
+from ops.migrations import RENAMED_STAGES
 from ops.reporting.stage_columns import NOT_WORK, current_stage_columns
 from ops.stages.bake import ASSET_GLB
 from ops.stages.checks import QA_FILE, read_report
