@@ -35,7 +35,6 @@ def test_each_step_falls_in_the_phase_its_fraction_names() -> None:
             assert (shape.resolution, shape.n_views, shape.index, shape.final) == (128, 1, 2, True)
     first_final = sched.final_from()
     assert sched.at(first_final).final and not sched.at(first_final - 1).final
-    assert sched.resolutions() == (32, 64, 128)
     assert RenderSchedule((), 128, 1, steps).final_from() == 0
 
 

@@ -104,7 +104,3 @@ class RenderSchedule:
     def final_from(self) -> int:
         """The first step of the final phase (0 without coarse phases)."""
         return min(self.steps, math.ceil(self.phases[-1].until * self.steps)) if self.phases else 0
-
-    def resolutions(self) -> tuple[int, ...]:
-        """Every render size the schedule uses (the final one last)."""
-        return tuple(dict.fromkeys([p.resolution for p in self.phases] + [self.resolution]))

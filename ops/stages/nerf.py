@@ -120,9 +120,9 @@ class NerfTask(GuidedTask):
                 and self.budget is not None:
             self.samples_dropped += sum(self.budget.adapt().values())  # the grid changed: resize the buffers
 
-    def _step_losses(self, ref: Any, cams: Any, novel: Any) -> RenderedStep:
+    def _step_losses(self, ref: Any, cams: Any, novel: Any, shape: StepShape) -> RenderedStep:
         cfg = self.cfg
-        m = mask_bce(ref.opacity_chw(), self.target_at(ref.rgb_chw().shape[-1]).mask)
+        m = mask_bce(ref.opacity_chw(), self.target_at(shape.resolution).mask)
         loss, terms = cfg.mask_weight * m, {"mask_bce": m.detach()}
         if cfg.normal_smooth_weight > 0:
             s = normal_smoothness(novel.normal, novel.opacity)
@@ -138,7 +138,7 @@ class NerfTask(GuidedTask):
         ref = self._render(self.target.camera, generator, False, "reference", shape)
         cams = novel_cameras(shape.n_views, generator, self.device)
         novel = self._render(cams, generator, self.cfg.normal_smooth_weight > 0, "novel", shape)
-        return self._step_losses(ref, cams, novel)
+        return self._step_losses(ref, cams, novel, shape)
 
     def last_phase(self, step: int) -> bool:
         # Finer hash-grid levels still switching on: stopping now would leave them untrained.
