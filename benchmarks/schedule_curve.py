@@ -134,11 +134,13 @@ def more_steps_finding(rows: list[dict[str, Any]], size: str) -> list[dict[str, 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--records", type=Path, nargs="+", required=True, help="early_stop record files (JSON lines)")
+    ap.add_argument("--preset", default="paper", help="the preset whose shortened schedules make the curve "
+                    "(records of other presets in the same files, e.g. fast/20, are left out)")
     ap.add_argument("--name", default="schedule_curve")
     ap.add_argument("--results", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
     records = [json.loads(line) for f in args.records for line in f.read_text().splitlines() if line]
-    rows = glb_rows(records)
+    rows = [r for r in glb_rows(records) if r["base"].split("/")[0] == args.preset]
     if not rows:
         print("no fixed-schedule records with points", file=sys.stderr)
         return 1
