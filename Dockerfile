@@ -11,8 +11,10 @@ FROM python:3.11-slim-bookworm
 # gcc, libc6-dev: for a dependency without a binary wheel, and at run time for Triton (the hash-grid
 # kernels, torch.compile on CUDA), which builds its small C launchers with the system compiler
 # against Python.h (this image has it).
+# g++: the meshoptimizer package (web GLB compression) builds from source. nodejs, npm: the export's glTF
+# validator and the viewer pages' <model-viewer> (tools/web, `make web-tools`).
 RUN apt-get update \
- && apt-get install -y --no-install-recommends make gcc libc6-dev \
+ && apt-get install -y --no-install-recommends make gcc g++ libc6-dev nodejs npm \
  && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /opt/morpheus3d
@@ -34,6 +36,8 @@ COPY orchestration/ orchestration/
 # CPU-only dev machine may resolve the same pin to a local `+cpu` wheel (pip find-links), which
 # this build does not have. The cache mount keeps downloaded wheels between builds, out of the layers.
 RUN --mount=type=cache,target=/root/.cache/pip make install
+COPY tools/web/package.json tools/web/package-lock.json tools/web/validate_gltf.mjs tools/web/
+RUN make web-tools
 
 # The local workspace (`dagster dev -w workspace.yaml`) and the bundled photos, for a smoke test.
 COPY workspace.yaml ./

@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install browser postgres demo demo-intro dagster demo-frequency bench-quality test lint doctor clean
+.PHONY: install browser postgres web-tools demo demo-intro dagster demo-frequency bench-quality test lint doctor clean
 
 install: $(STAMP)
 
@@ -32,15 +32,15 @@ DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/$(DAGSTER_HOME_DIR) DAGSTER_SCHEDULE_GRPC_
 
 # Measured from a fresh clone on 2 idle cores (README): 9.7 min, 2.4 of them installing .venv.
 DEMO_MINUTES := 10
-# The main job on the bundled photos through Dagster: all six assets per photo, draft preset (about
+# The main job on the bundled photos through Dagster: all seven assets per photo, draft preset (about
 # 2.3 min per photo on 2 CPU cores); prints where the GLBs and QA reports are. `make dagster` then
 # shows the runs. demo-intro comes first so the expected time is said before the install starts.
-demo: demo-intro $(STAMP)
+demo: demo-intro $(STAMP) web-tools
 	$(DAGSTER_ENV) $(VENV)/bin/morpheus3d-dagster materialize
 	$(VENV)/bin/morpheus3d report --store $${MORPHEUS_STORE:-outputs/demo} --out $${MORPHEUS_STORE:-outputs/demo}/report.html
 
 demo-intro:
-	@echo "make demo: bottle, box and mug through the six Dagster assets, one after another (draft preset):"
+	@echo "make demo: bottle, box and mug through the seven Dagster assets, one after another (draft preset):"
 	@echo "  about $(DEMO_MINUTES) min on 2 idle CPU cores the first time (2-3 min of it installing .venv),"
 	@echo "  about 15 s once cached. Progress follows, at least every 10 s."
 
@@ -79,6 +79,17 @@ browser:
 	  fi; \
 	fi
 
+# The Node tools of the export (tools/web/package.json, pinned by its lock file): the Khronos glTF validator,
+# <model-viewer> and the meshopt decoder for the viewer pages. Installed once per lock file change; without
+# npm the export says the glTF check did not run and the viewer pages say their script is missing.
+WEB_STAMP := tools/web/node_modules/.installed
+web-tools: $(WEB_STAMP)
+$(WEB_STAMP): tools/web/package-lock.json
+	@if command -v npm >/dev/null 2>&1; then \
+	    { npm ci --prefix tools/web --no-audit --no-fund --loglevel=error && touch $(WEB_STAMP); } \
+	      || echo "npm ci failed: the glTF validator and the 3D viewer are missing (make web-tools retries)"; \
+	else echo "No npm: the glTF validator and the 3D viewer are not installed (install Node.js, then make web-tools)"; fi
+
 # Debian's PostgreSQL server for tests/test_postgres_instance.py, the same way (NO_APT=1 skips; never fails).
 postgres:
 	@if [ -n "$(NO_APT)" ]; then echo "NO_APT set: not installing PostgreSQL; tests/test_postgres_instance.py skips without it"; \
@@ -96,7 +107,7 @@ postgres:
 # module's shared fixture is built once). Default 0, one process: on 2 cores two workers measured
 # slower (20.2 vs 16.9 min; torch's threads oversubscribe the cores). Timings: docs/testing.md.
 TEST_WORKERS ?= 0
-test: $(STAMP) browser postgres
+test: $(STAMP) browser postgres web-tools
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10
 

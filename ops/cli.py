@@ -15,6 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry, rembg_model_file
+from ops.config.preset_names import PRESET_NAMES
 from ops.engine.stage_ids import STAGE_IDS, current_stage_id
 
 PACKAGES = (
@@ -136,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "--list-keys)")
     run.add_argument("--out", type=Path, help="the asset store: <out>/<photo-key>/<stage>/ (required unless "
                      "--list-keys)")
-    run.add_argument("--preset", default="draft", choices=["draft", "standard", "paper"],
+    run.add_argument("--preset", default="draft", choices=PRESET_NAMES,
                      help="schedule and sizes (draft: minutes on a CPU; paper: the paper's schedule on a GPU)")
     run.add_argument("--init-mesh", type=Path, help="refine an existing asset (GLB/OBJ): skips the NeRF stage")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -174,7 +175,10 @@ def report_command(args: argparse.Namespace) -> int:
     from assets_store.catalog import Catalog
     from assets_store.catalog_files import CatalogError
     from assets_store.store import Store
+    from ops.reporting.asset_metrics import asset_rows
     from ops.reporting.report import build_report, write_report
+    from ops.reporting.report_sections import ReportOptions
+    from ops.reporting.viewer import GALLERY_FILE, gallery_assets, gallery_html
 
     if args.store is None and args.catalog is None:
         print("morpheus3d report: give --store DIR (or --catalog DIR)", file=sys.stderr)
@@ -203,12 +207,16 @@ def report_command(args: argparse.Namespace) -> int:
             done = catalog.compact()
             if done.files_merged:
                 print(f"compacted {done.files_merged} catalog files of {len(done.days)} past day(s)", file=sys.stderr)
-        page = build_report(catalog, since=since, base_dir=base)
+        options = ReportOptions(page_dir=args.out.resolve().parent)
+        page = build_report(catalog, since=since, base_dir=base, options=options)
+        assets = asset_rows(catalog.scan(since).table).to_pylist()
     except CatalogError as exc:
         print(f"morpheus3d report: {exc}", file=sys.stderr)
         return 1
     write_report(args.out, page)
-    print(f"wrote {args.out}", file=sys.stderr)
+    gallery = args.out.with_name(GALLERY_FILE)
+    write_report(gallery, gallery_html(gallery_assets(assets, base.resolve(), gallery.resolve().parent)))
+    print(f"wrote {args.out} and {gallery} (every asset's 3D viewer, filterable by verdict)", file=sys.stderr)
     return 0
 
 
@@ -223,6 +231,7 @@ def run_command(args: argparse.Namespace) -> int:
     from ops.engine.pipeline_batch import run_batch
     from ops.engine.store_layout import open_store
     from ops.intake.photo_folder import list_photos
+    from ops.intake.products import ProductsFileError, products_for
     from ops.reporting.catalog_rows import record_outcomes
     from ops.reporting.progress import ConsoleProgress
     from ops.reporting.run_table import format_run_table
@@ -260,6 +269,12 @@ def run_command(args: argparse.Namespace) -> int:
     else:
         print(f"morpheus3d run: {args.photo}: no such file or folder", file=sys.stderr)
         return 2
+    try:  # rows naming no photo fail nobody's export: say them here (a bad file fails each export with its error)
+        table = products_for(photos[0])
+        for problem in table.unknown if table is not None else ():
+            print(f"morpheus3d run: {problem}", file=sys.stderr)
+    except ProductsFileError as exc:
+        print(f"morpheus3d run: {exc}", file=sys.stderr)
     keys = assign_keys(p.name for p in photos)
     store = open_store(args.out)
     progress = ConsoleProgress()

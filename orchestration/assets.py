@@ -1,4 +1,4 @@
-"""The photo source asset and the six per-photo stage assets: thin wrappers over ``ops.engine.pipeline``.
+"""The photo source asset and the seven per-photo stage assets: thin wrappers over ``ops.engine.pipeline``.
 
 Each stage asset runs ``ops.engine.pipeline.run_stage`` for every photo partition of its step, then
 reports the store's manifest as metadata and the stage's QA checks (``ops.stages.qa.CHECKS``) as asset

@@ -1,7 +1,7 @@
 """``morpheus3d-dagster``: register photos as partitions and materialise them through Dagster.
 
     morpheus3d-dagster add-photos [NAME ...]        register photos of $MORPHEUS_PHOTO_DIR, print keys
-    morpheus3d-dagster materialize [NAME ...]       run all six assets per photo, in this process
+    morpheus3d-dagster materialize [NAME ...]       run all seven assets per photo, in this process
     morpheus3d-dagster status                       fresh / stale / missing per photo
     morpheus3d-dagster gpu-pool [--limit N]         set the "gpu" pool's limit to GPUs × MORPHEUS_GPU_SLOTS
     morpheus3d-dagster migrate-history              carry materialisations of renamed asset keys over
@@ -24,6 +24,7 @@ from typing import TextIO
 
 import dagster as dg
 
+from ops.config.preset_names import PRESET_NAMES
 from ops.engine.gpu_lease import GPUS_ENV, SLOTS_ENV, gpu_count, gpu_slots
 from ops.stages.bake import ASSET_GLB
 from ops.stages.checks import read_report
@@ -74,7 +75,7 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     job = defs.resolve_job_def(JOB)
     rows, failed = [], 0
     for i, key in enumerate(keys, 1):
-        print(f"[{i}/{len(keys)}] {key}: materialising six assets …", file=sys.stderr, flush=True)
+        print(f"[{i}/{len(keys)}] {key}: materialising seven assets …", file=sys.stderr, flush=True)
         start = time.perf_counter()
         result = job.execute_in_process(partition_key=key, instance=instance, raise_on_error=False,
                                         tags={"morpheus/trigger": "cli"}, run_config=QUIET)
@@ -142,10 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="morpheus3d-dagster", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("--photos", type=Path, help="photo folder (default $MORPHEUS_PHOTO_DIR or examples/photos)")
     parser.add_argument("--store", type=Path, help="asset store root (default $MORPHEUS_STORE)")
-    parser.add_argument("--preset", choices=["draft", "standard", "paper"], help="default $MORPHEUS_PRESET or draft")
+    parser.add_argument("--preset", choices=PRESET_NAMES, help="default $MORPHEUS_PRESET or draft")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, text in (("add-photos", "register photos as partitions and print their keys"),
-                       ("materialize", "run all six assets for the photos, one run per photo, in this process"),
+                       ("materialize", "run all seven assets for the photos, one run per photo, in this process"),
                        ("status", "fresh / stale / missing stages per registered photo")):
         p = sub.add_parser(name, help=text)
         if name != "status":

@@ -1,8 +1,8 @@
 """The Dagster code location loaded by ``workspace.yaml`` (``make dagster`` from the repo root).
 
 Assets: ``photo_files`` (observable source: the watched folder) → ``reference`` → ``nerf`` → ``dmtet`` →
-``texture`` → ``bake`` → ``qa`` (the stage ids of ``ops.stages``), one dynamic partition per photo.
-The job ``morpheus_photos`` runs all six for the photos it is given (sensor, nightly schedule,
+``texture`` → ``bake`` → ``export`` → ``qa`` (the stage ids of ``ops.stages``), one dynamic partition per
+photo. The job ``morpheus_photos`` runs all seven for the photos it is given (sensor, nightly schedule,
 backfills). Configuration: ``orchestration.settings`` (environment variables).
 """
 
@@ -29,7 +29,7 @@ def build_definitions(executor: dg.ExecutorDefinition | None = None,
     multiprocess (each step in its own process; models are re-loaded from disk per step)."""
     settings = settings or OrchestrationSettings.from_env()
     job = dg.define_asset_job(JOB, selection=dg.AssetSelection.assets(*STAGE_IDS),
-                              description="All six stages for the photos (partitions) it is given.")
+                              description="All seven stages for the photos (partitions) it is given.")
     resource = MorpheusResource(photo_dir=settings.photo_dir, store_root=settings.store_root, preset=settings.preset,
                                 overrides=list(settings.overrides), settle_seconds=settings.settle_seconds)
     with warnings.catch_warnings():

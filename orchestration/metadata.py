@@ -66,8 +66,11 @@ def stage_metadata(outcome: StageOutcome, stage_dir: Path) -> dict[str, Any]:
         meta["pass_through"] = True
     if m.notes:
         meta["notes"] = MetadataValue.md("\n".join(f"- {n}" for n in m.notes))
-    if "asset.glb" in m.outputs:
-        meta["glb"] = MetadataValue.path(str(stage_dir / "asset.glb"))
+    # The files people open: the GLB, the true-size exports, the page with the 3D viewer.
+    for name, label in (("asset.glb", "glb"), ("model.glb", "true_size_glb"), ("model.web.glb", "web_glb"),
+                        ("model.usdz", "usdz"), ("viewer.html", "viewer")):
+        if name in m.outputs:
+            meta[label] = MetadataValue.path(str(stage_dir / name))
     preview = preview_markdown(stage_dir / BY_ID[m.stage].preview, f"{m.photo_key} · {m.stage}")
     if preview is not None:
         meta["preview"] = preview

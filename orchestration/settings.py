@@ -1,7 +1,8 @@
 """Everything the Dagster deployment is configured by, in one typed object read from the environment.
 
 ``MORPHEUS_PHOTO_DIR`` (watched folder), ``MORPHEUS_STORE`` (asset store root), ``MORPHEUS_PRESET``
-(draft | standard | paper), ``MORPHEUS_SET`` (pipeline overrides, ``;``-separated ``key=value``),
+(``ops.config.preset_names``: draft | standard | fast | paper), ``MORPHEUS_SET`` (pipeline overrides,
+``;``-separated ``key=value``),
 ``MORPHEUS_SENSOR_MAX_NEW`` (photos added per sensor tick), ``MORPHEUS_SETTLE_S`` (seconds a file
 must be untouched before it counts as uploaded), ``MORPHEUS_NIGHTLY_CRON``, ``MORPHEUS_TIMEZONE``,
 ``MORPHEUS_BATCH`` (photos per backfill run), ``MORPHEUS_BATCH_TOGETHER`` (``1``, the default: a

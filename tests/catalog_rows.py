@@ -7,7 +7,9 @@ import datetime as dt
 import random
 from typing import Any
 
-STAGES = ("reference", "nerf", "dmtet", "texture", "bake", "qa")
+from ops.engine.stage_ids import STAGE_IDS
+
+STAGES = STAGE_IDS
 LOGGED_STAGES = ("nerf", "dmtet", "texture")  # the stages with an optimisation loop and a run log
 METRICS = ("ref_psnr", "ssim_in", "mask_iou", "hf_ratio", "colour_deviation", "lpips", "uv_coverage",
            "texel_density", "watertight", "mesh_faces", "novel_view_clip", "silhouette_iou", "depth_consistency",

@@ -199,7 +199,7 @@ def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoO
     out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.max_grid=32", dmtet=0), "tiny", KEY,
                     init_mesh=asset)
     assert out.error is None, out.error
-    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture", "bake", "qa"]
+    assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture", "bake", "export", "qa"]
     dm = manifest(store, KEY, "dmtet")
     assert set(dm.fingerprint.inputs) == {"reference", "init_mesh"} and "asset.glb" in dm.notes[0]
     assert dm.metrics["colour_fit_mse"] < 0.01  # the warm start reproduces the asset's texture

@@ -20,6 +20,7 @@ from ops.config.tree import from_dict
 from ops.engine.early_stop import whole_schedule_record
 from ops.engine.pipeline import PhotoRun, run_photo
 from ops.engine.priors import PriorsConfig
+from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.store_layout import (
     CONFIG_CHANGES,
     LAYOUT,
@@ -85,10 +86,10 @@ def test_a_store_from_before_is_read_cached_with_the_same_outputs(current: Store
     store = open_store(old_store.root)
     assert layout_of(store.root) == LAYOUT
     assert sorted(p.name for p in store.photo_dir(KEY).iterdir() if not p.name.startswith(".")) == sorted(
-        ["reference", "nerf", "dmtet", "texture", "bake", "qa"])
+        STAGE_IDS)
     again = run_photo(PHOTOS / "mug.jpg", store, CFG, "tiny", KEY)
-    assert [s.status for s in again.stages] == ["cached"] * 6, again
-    for stage in ("reference", "nerf", "dmtet", "texture", "bake", "qa"):
+    assert [s.status for s in again.stages] == ["cached"] * len(STAGE_IDS), again
+    for stage in STAGE_IDS:
         assert output_hashes(store, KEY, stage) == output_hashes(current, KEY, stage)
         m = store.read_manifest(KEY, stage)
         assert m is not None and config_hash(m.config) == m.fingerprint.config_hash
@@ -98,7 +99,7 @@ def test_a_store_from_before_is_read_cached_with_the_same_outputs(current: Store
 def test_an_interrupted_stage_resumes_from_its_layout1_checkpoint(current: Store, tmp_path: Path, stage: str) -> None:
     shutil.copytree(current.root, tmp_path / "old")
     store = Store(tmp_path / "old")
-    later = ("nerf", "dmtet", "texture", "bake", "qa")[("nerf", "dmtet").index(stage):]
+    later = STAGE_IDS[STAGE_IDS.index(stage):]
     run = PhotoRun(PHOTOS / "mug.jpg", KEY, store, CFG, "tiny", None, None, None)
     planned = run.planned(stage)
     for s in later:  # interrupted in ``stage``: its checkpoint is all there is of it
@@ -131,7 +132,8 @@ def test_the_migration_is_idempotent_and_finishes_after_an_interruption(old_stor
     photo = old_store.photo_dir(KEY)
     (photo / "uv_bake").rename(photo / "bake")  # killed after its first rename
     first = migrate(old_store)
-    assert first.folders_renamed == 2 and first.manifests_rewritten == 5 and not first.problems  # all but reference
+    assert first.folders_renamed == 2 and first.manifests_rewritten == len(STAGE_IDS) - 1  # all but reference
+    assert not first.problems
     second = migrate(old_store)
     assert (second.folders_renamed, second.manifests_rewritten, second.checkpoints_moved) == (0, 0, 0)
     assert all(old_store.read_manifest(KEY, s) is not None for s in ("nerf", "texture", "bake"))

@@ -27,7 +27,7 @@ from tests.browser import chromium, needs_browser
 from tests.dagster_ui import RENDER_TIMEOUT_S, VIEWPORT, save_screenshot, serve, write_instance_config
 
 # The pipeline's assets: the graph must show at least these (so an empty graph cannot pass).
-PIPELINE_ASSETS = ("reference", "nerf", "dmtet", "texture", "bake", "qa")
+PIPELINE_ASSETS = ("reference", "nerf", "dmtet", "texture", "bake", "export", "qa")
 # "Lineage" in the UI's navigation: the global asset lineage graph, every asset of every code location. With more
 # than one asset group the UI collapses each group into one box unless it is listed in ``?expanded=`` (as
 # ``global@global:<group>`` while the UI's per-code-location grouping flag is off, its default).

@@ -1,5 +1,5 @@
 """The web GLB (``morpheus_core.export.web_glb``): it decodes back to the input, meets its byte budget, and
-loads where it is meant to (meshoptimizer's JS decoder, model-viewer in headless Chromium).
+loads where it is meant to (meshoptimizer's JS decoder; model-viewer in a browser: tests/test_export_stage.py).
 
 Inputs are fresh random meshes each run (the seed is printed, so a failure can be replayed with
 ``WEB_GLB_SEED``): a deformed sphere cut into 2–4 UV charts (vertices split at the cuts) of a few
@@ -12,16 +12,12 @@ translation and scale), meshopt streams decoded with the ``meshoptimizer`` Pytho
 
 from __future__ import annotations
 
-import functools
-import http.server
 import io
 import json
 import os
 import shutil
 import struct
 import subprocess
-import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +41,6 @@ REPO = Path(__file__).resolve().parents[1]
 WEB_TOOLS = REPO / "tools" / "web" / "node_modules"
 MESHOPT_JS = WEB_TOOLS / "meshoptimizer" / "meshopt_decoder.mjs"
 MESHOPT_UMD = WEB_TOOLS / "meshoptimizer" / "meshopt_decoder.cjs"
-MODEL_VIEWER = WEB_TOOLS / "@google" / "model-viewer" / "dist" / "model-viewer.min.js"
 NODE = shutil.which(os.environ.get("MORPHEUS_NODE", "node"))
 
 PSNR_FLOOR_DB = 28.0
@@ -395,65 +390,3 @@ def test_meshopt_js_decoder_agrees(rng: np.random.Generator, tmp_path: Path) -> 
     q = np.frombuffer(pos_view, np.uint16).reshape(-1, 4)[:, :3].astype(np.float64) / 65535
     node = doc["nodes"][0]
     np.testing.assert_allclose(q * node["scale"] + node["translation"], got["positions"], rtol=0, atol=1e-12)
-
-
-_PAGE = """<!doctype html><html><body>
-<script>self.ModelViewerElement = {meshoptDecoderLocation: 'meshopt_decoder.js'};</script>
-<script type="module" src="model-viewer.min.js"></script>
-<model-viewer id="mv" src="web.glb" style="width:256px;height:256px"></model-viewer>
-<script>
-const mv = document.getElementById('mv');
-mv.addEventListener('load', async () => {
-  const texture = mv.model.materials[0].pbrMetallicRoughness.baseColorTexture.texture;
-  let thumbnail = null;
-  try { thumbnail = await texture.source.createThumbnail(8, 8); } catch (e) { thumbnail = null; }
-  const d = mv.getDimensions();
-  window.__result = {ok: true, dims: [d.x, d.y, d.z], thumbnail: thumbnail !== null};
-});
-mv.addEventListener('error', (e) => {
-  window.__result = {ok: false, detail: String(e.detail && e.detail.sourceError)};
-});
-</script></body></html>
-"""
-
-
-@pytest.mark.slow
-@needs_meshopt
-def test_model_viewer_loads_it_offline(rng: np.random.Generator, tmp_path: Path) -> None:
-    """model-viewer 4.4 (vendored, no CDN) with the meshopt decoder of tools/web loads the web GLB."""
-    from tests.browser import missing_browser_parts
-
-    missing = missing_browser_parts() + [str(p) for p in (MODEL_VIEWER, MESHOPT_UMD) if not p.is_file()]
-    if missing:
-        pytest.skip(f"needs headless Chromium (`make browser`) and tools/web (`npm ci --prefix tools/web`): "
-                    f"missing {', '.join(missing)}")
-    from tests.browser import chromium
-
-    baked = random_baked(rng)
-    (tmp_path / "web.glb").write_bytes(encode_web_glb(baked, 50_000_000, compression="meshopt")[0])
-    shutil.copyfile(MODEL_VIEWER, tmp_path / "model-viewer.min.js")
-    shutil.copyfile(MESHOPT_UMD, tmp_path / "meshopt_decoder.js")  # served as JavaScript by its name
-    (tmp_path / "index.html").write_text(_PAGE)
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args: Any) -> None:
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path)))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        with chromium((320, 320)) as driver:
-            driver.get(f"http://127.0.0.1:{server.server_port}/index.html")
-            deadline = time.monotonic() + 90
-            result = None
-            while result is None and time.monotonic() < deadline:
-                result = driver.execute_script("return window.__result || null")
-                time.sleep(0.25)
-    finally:
-        server.shutdown()
-        server.server_close()
-    assert result is not None, "model-viewer fired neither load nor error within 90 s"
-    assert result["ok"], result
-    assert result["thumbnail"], "the WebP texture did not decode"
-    extent = baked.vertices.max(0) - baked.vertices.min(0)
-    np.testing.assert_allclose(result["dims"], extent, rtol=1e-4, atol=extent.max() / 65535)

@@ -1,6 +1,7 @@
 """Export of a baked asset (``export.uv_bake.BakedTexture``) as GLB or OBJ + MTL + PNG.
 
-``encode_glb`` / ``encode_obj`` return bytes (for callers that write through the asset store);
+``encode_glb`` / ``encode_obj`` return bytes (for callers that write through the asset store; ``decode_glb``
+reads the GLB back);
 ``export_glb`` / ``export_obj`` write files atomically (``morpheus_core.atomic_io``). The texture
 (row 0 at v = 1) is handed to trimesh unflipped; trimesh writes glTF's top-left UV origin itself.
 """
@@ -29,6 +30,21 @@ def _trimesh(baked: BakedTexture) -> trimesh.Trimesh:
 def encode_glb(baked: BakedTexture) -> bytes:
     """The asset as GLB bytes (PBR base-colour texture, smooth normals)."""
     return trimesh.exchange.gltf.export_glb(_trimesh(baked), include_normals=True)
+
+
+def decode_glb(data: bytes) -> BakedTexture:
+    """The asset back from ``encode_glb``'s bytes: vertices, faces, UVs (v up), the written normals (read from
+    the file, not recomputed) and the base-colour texture; ``coverage`` is not in a GLB (NaN)."""
+    loaded = trimesh.exchange.gltf.load_glb(io.BytesIO(data))
+    geometries = list(loaded["geometry"].values())
+    if len(geometries) != 1:
+        raise ValueError(f"expected one mesh in the GLB, found {len(geometries)}")
+    g = geometries[0]
+    visual = g["visual"]
+    texture = np.asarray(visual.material.baseColorTexture.convert("RGB"))
+    faces = np.asarray(g["faces"], dtype=np.int64)
+    return BakedTexture(np.asarray(g["vertices"], np.float32), faces, np.asarray(visual.uv, np.float32),
+                        np.asarray(g["vertex_normals"], np.float32), texture, float("nan"), int(faces.shape[0]))
 
 
 def encode_obj(baked: BakedTexture, stem: str) -> dict[str, bytes]:

@@ -10,8 +10,8 @@ the report as JSON, which ``validate_gltf`` condenses into a ``GltfValidation``.
 Where things are looked up (first hit wins):
 
 * the tools folder (the one holding ``node_modules/gltf-validator``): the ``tools_dir`` argument,
-  else the environment variable ``MORPHEUS_WEB_TOOLS``, else ``tools/web`` of this repository
-  (found from this file: ``morpheus_core/export/`` → two parents up);
+  else ``morpheus_core.export.web_tools.web_tools_dir()`` (``MORPHEUS_WEB_TOOLS``, else the repository's
+  ``tools/web``);
 * the runner script: always ``tools/web/validate_gltf.mjs`` of this repository (it is versioned
   with this module); it loads the validator from the tools folder above;
 * ``node``: the ``node`` argument, else ``MORPHEUS_NODE``, else ``node`` on ``PATH``.
@@ -30,10 +30,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-RUNNER = REPO_ROOT / "tools" / "web" / "validate_gltf.mjs"
-DEFAULT_TOOLS_DIR = REPO_ROOT / "tools" / "web"
-TOOLS_ENV = "MORPHEUS_WEB_TOOLS"
+from morpheus_core.export.web_tools import REPO_WEB_TOOLS, WEB_TOOLS_ENV, web_tools_dir
+
+# The runner is versioned with this module, so it is always the repository's own.
+RUNNER = REPO_WEB_TOOLS / "validate_gltf.mjs"
+TOOLS_ENV = WEB_TOOLS_ENV
 NODE_ENV = "MORPHEUS_NODE"
 
 _SEVERITIES = {0: "error", 1: "warning", 2: "info", 3: "hint"}
@@ -88,10 +89,7 @@ class GltfValidation:
 
 
 def _tools_dir(tools_dir: Path | str | None) -> Path:
-    if tools_dir is not None:
-        return Path(tools_dir)
-    env = os.environ.get(TOOLS_ENV)
-    return Path(env) if env else DEFAULT_TOOLS_DIR
+    return Path(tools_dir) if tools_dir is not None else web_tools_dir()
 
 
 def _node(node: str | None) -> str | None:

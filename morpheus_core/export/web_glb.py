@@ -274,7 +274,7 @@ def meshopt_available() -> str | None:
         import meshoptimizer  # noqa: F401
     except Exception as exc:  # the binding raises ImportError, a broken build OSError
         return (f"the meshoptimizer Python binding is not usable ({exc}); install it with "
-                "`pip install -e '.[web]'` (meshoptimizer==0.2.30a0, an sdist: needs a C++ compiler, g++)")
+                "`make install` (meshoptimizer==0.2.30a0 is a dependency, an sdist: needs a C++ compiler, g++)")
     return None
 
 

@@ -5,7 +5,8 @@
 - ``standard``: the same method at about a quarter of the cost (fewer steps, 96/256 px).
 - ``fast``: the paper's method and resolutions for about a quarter of its GPU time: a quarter of its
   steps, the first half of each stage rendering several views per step at half size (coarse-to-fine
-  render phases, ``ops.engine.render_phases``).
+  render phases, ``ops.engine.render_phases``). Measured worse than ``paper``: at 1/20 of both schedules
+  it loses 2.4–4.0 dB GLB PSNR on every benchmark scene (docs/performance.md).
 - ``draft``: small enough for a 2-core CPU (one photo end to end in a few minutes): tiny
   renders, a small hash grid, short schedules. For previews, tests and the demo.
 
@@ -31,6 +32,7 @@ from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import TextureFieldConfig
+from ops.config.preset_names import PRESET_NAMES
 from ops.config.tree import ConfigError, apply_overrides
 from ops.engine.loop import LoopConfig
 from ops.engine.priors import PriorsConfig
@@ -38,6 +40,7 @@ from ops.engine.render_phases import Phase
 from ops.migrations import RENAMED_KEYS
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
+from ops.stages.export import ExportStageConfig
 from ops.stages.nerf import NerfStageConfig, small_field
 from ops.stages.qa import QAConfig
 from ops.stages.reference import ReferenceStageConfig
@@ -67,6 +70,7 @@ class PipelineConfig:
     dmtet: DMTetStageConfig = field(default_factory=DMTetStageConfig)
     texture: TextureStageConfig = field(default_factory=TextureStageConfig)
     bake: BakeStageConfig = field(default_factory=BakeStageConfig)
+    export: ExportStageConfig = field(default_factory=ExportStageConfig)
     qa: QAConfig = field(default_factory=QAConfig)
     execution: ExecutionConfig = field(default_factory=execution_defaults)
     """How the kernels run (Triton or eager, torch.compile): results differ by rounding only, so no stage's
@@ -130,8 +134,10 @@ def draft() -> PipelineConfig:
     )
 
 
-PRESETS: dict[str, Callable[[], PipelineConfig]] = {"paper": paper, "fast": fast, "standard": standard,
-                                                    "draft": draft}
+PRESETS: dict[str, Callable[[], PipelineConfig]] = {"draft": draft, "standard": standard, "fast": fast,
+                                                    "paper": paper}
+if tuple(PRESETS) != PRESET_NAMES:
+    raise ImportError(f"ops.config.presets defines {tuple(PRESETS)}, ops.config.preset_names names {PRESET_NAMES}")
 
 
 def current_key(assignment: str) -> str:

@@ -7,7 +7,7 @@ disagree with this order.
 
 from ops.migrations import RENAMED_STAGES
 
-STAGE_IDS = ("reference", "nerf", "dmtet", "texture", "bake", "qa")
+STAGE_IDS = ("reference", "nerf", "dmtet", "texture", "bake", "export", "qa")
 
 
 def current_stage_id(name: str) -> str:

@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 
 from assets_store.catalog import latest_rows
 from ops.reporting.html import esc, figure_png, fmt, fmt_s, img, preview_png
-from ops.reporting.report_sections import HISTOGRAM_MIN_ASSETS, KEY_METRICS, ReportOptions, resolve_path
+from ops.reporting.report_sections import HISTOGRAM_MIN_ASSETS, KEY_METRICS, ReportOptions, page_link, resolve_path
 from ops.reporting.stage_columns import BUILD_SUFFIX, float_column, wall_stages
 
 __all__ = ["HISTOGRAM_MIN_ASSETS", "asset_rows", "asset_table", "histograms", "metrics_section", "numeric_metrics"]
@@ -100,7 +100,11 @@ def asset_table(assets: pa.Table, base: Any, options: ReportOptions) -> str:
         created = row.get("created_at")
         newest = f"{row.get('run_id')} ({row.get('status')}, {created:%Y-%m-%d %H:%M} UTC)" \
             if created is not None else str(row.get("run_id"))
-        cells = [esc(row.get("photo_key")), thumb, esc(row.get("verdict") or "-"),
+        viewer = resolve_path(row.get("viewer_path"), base)
+        key = esc(row.get("photo_key"))
+        if viewer is not None:
+            key = f'<a href="{esc(page_link(viewer, options))}" title="turn it in 3D, at its real size">{key}</a>'
+        cells = [key, thumb, esc(row.get("verdict") or "-"),
                  *(esc(fmt(row.get(m), 4)) for m in metrics), esc(fmt_s(_build_s(row, stages))), esc(newest)]
         body.append(f'<tr class="asset" data-photo-key="{esc(row.get("photo_key"))}">'
                     + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")

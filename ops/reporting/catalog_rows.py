@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import uuid
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,8 +33,10 @@ from ops.engine.pipeline import PhotoOutcome
 from ops.engine.stage_ids import STAGE_IDS
 from ops.migrations import RENAMED_STAGES
 from ops.reporting.stage_columns import NOT_WORK, current_stage_columns
+from ops.reporting.viewer import VIEWER_FILE
 from ops.stages.bake import ASSET_GLB
 from ops.stages.checks import QA_FILE, read_report
+from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.qa import QA_TURNTABLE_FILE
 
 CACHED = "cached"
@@ -154,7 +157,25 @@ def photo_row(store: Store, key: str, run_id: str, status_by_stage: dict[str, st
         row["verdict"] = None
     if "bake" in manifests:
         row["glb_path"] = str(store.stage_dir(key, "bake") / ASSET_GLB)
+    if "export" in manifests:
+        row.update(export_columns(manifests["export"].metrics, store.stage_dir(key, "export")))
+        if (qa_dir / VIEWER_FILE).is_file():
+            row["viewer_path"] = str(qa_dir / VIEWER_FILE)
     return row
+
+
+def export_columns(metrics: dict[str, Any], export_dir: Path) -> dict[str, Any]:
+    """The catalog's view of the export: the SKU, the real size in millimetres and where it came from, the
+    file sizes, and where the true-size, web and USDZ files are."""
+    out: dict[str, Any] = {"sku": metrics.get("sku") or None, "scale_source": metrics.get("scale_source")}
+    for name in ("height_mm", "width_mm", "depth_mm", "size_disagreement", "glb_bytes", "web_glb_bytes",
+                 "usdz_bytes"):
+        out[f"export_{name}"] = _number(metrics.get(name))
+    out["model_glb_path"] = str(export_dir / MODEL_GLB)
+    out["web_glb_path"] = str(export_dir / MODEL_WEB_GLB)
+    if metrics.get("usdz_bytes"):
+        out["usdz_path"] = str(export_dir / MODEL_USDZ)
+    return out
 
 
 def record_outcomes(store: Store, outcomes: list[PhotoOutcome], run_id: str | None = None) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,12 @@ class ReportOptions:
     asset_table_max: int = 200  # rows of the per-asset table (the rest counted; the histograms cover them)
     thumbnail_height: int = 64  # the per-asset table's turntable strips, scaled to this height …
     thumbnail_max_width: int = 512  # … and at most this width
+    page_dir: Path | None = None  # where the page is written: links to the viewer pages are relative to it
+
+
+def page_link(path: Path, options: ReportOptions) -> str:
+    """A link from the page to a file: relative to ``options.page_dir`` when set, else a file:// URI."""
+    return os.path.relpath(path, options.page_dir) if options.page_dir is not None else path.resolve().as_uri()
 
 
 # ---------------------------------------------------------------------------------------------- helpers

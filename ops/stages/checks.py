@@ -48,6 +48,11 @@ CHECKS: dict[str, tuple[CheckSpec, ...]] = {
     "texture": (CheckSpec("stable_optimisation", WARN, "at most qa.max_guard_events NaN/Inf guard events"),),
     "bake": (CheckSpec("reference_psnr", ERROR, "the GLB's reference view reaches qa.min_ref_psnr dB"),
              CheckSpec("uv_coverage", WARN, "the UV atlas covers at least qa.min_uv_coverage of the texture")),
+    "export": (CheckSpec("formats_valid", ERROR, "the true-size GLB, the web GLB and the USDZ pass their formats' "
+                                                 "validators (glTF-Validator, USD's ARKit checks) with 0 errors; "
+                                                 "a warning where a validator could not run"),
+               CheckSpec("true_size", WARN, "the size comes from the catalog (products.csv or export.*_mm) and its "
+                                            "other dimensions agree with the mesh within qa.max_size_disagreement")),
     "qa": (CheckSpec("asset_finite", ERROR, "every vertex, UV and texel of the GLB is finite"),
            CheckSpec("mask_iou", ERROR, "the GLB's reference silhouette matches the photo's mask (IoU)"),
            CheckSpec("watertight", WARN, "the mesh is closed (an error when qa.require_watertight)"),
@@ -95,6 +100,9 @@ class CheckThresholds(Protocol):
     @property
     def max_guard_events(self) -> int: ...
 
+    @property
+    def max_size_disagreement(self) -> float: ...
+
 
 def stage_checks(stage: str, metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
     """The checks of a producing stage (not ``qa``), from its manifest metrics."""
@@ -119,9 +127,32 @@ def stage_checks(stage: str, metrics: dict[str, Any], cfg: CheckThresholds) -> l
             value = float(metrics.get("uv_coverage", 0.0))
             out.append(check(spec, value >= cfg.min_uv_coverage, value, cfg.min_uv_coverage,
                               f"UV atlas covers {value:.1%} of the texture (minimum {cfg.min_uv_coverage:.1%})"))
+        elif spec.name == "formats_valid":
+            out.append(_formats_valid(spec, metrics))
+        elif spec.name == "true_size":
+            source, off = metrics.get("scale_source", "default"), float(metrics.get("size_disagreement", 0.0))
+            ok = source != "default" and off <= cfg.max_size_disagreement
+            why = ("no size in products.csv or export.height_mm: sized by export.default_height_mm"
+                   if source == "default" else f"sized from {source}; other dimensions {off:.0%} off the mesh "
+                                               f"(allowed {cfg.max_size_disagreement:.0%})")
+            out.append(check(spec, ok, round(off, 4), cfg.max_size_disagreement, why))
         else:  # pragma: no cover - a CHECKS entry without an implementation is a programming error
             raise KeyError(f"no implementation for check {stage}.{spec.name}")
     return out
+
+
+def _formats_valid(spec: CheckSpec, metrics: dict[str, Any]) -> QACheck:
+    """Errors of every validated file; a validator that did not run makes this a warning, not a pass."""
+    errors = {k.removesuffix("_errors"): int(v) for k, v in metrics.items() if k.endswith("_errors") and v}
+    counted = [k for k in metrics if k.endswith("_errors")]
+    if errors:
+        detail = "; ".join(str(m) for k in errors for m in metrics.get(f"{k}_messages", [])[:3])
+        return check(spec, False, sum(errors.values()), 0,
+                     f"validator errors in {', '.join(f'{k} ({n})' for k, n in errors.items())}: {detail}")
+    missing = metrics.get("gltf_validator", "not run")
+    if missing != "ran" or not counted:
+        return check(spec, False, None, 0, f"not validated: {missing}", severity=WARN)
+    return check(spec, True, 0, 0, f"0 errors in {', '.join(k.removesuffix('_errors') for k in counted)}")
 
 
 def verdict(checks: list[QACheck]) -> tuple[str, list[str]]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -43,13 +44,27 @@ from ops.engine.progress import Heartbeat
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
 from ops.engine.target import ReferenceTarget, reference_psnr
+from ops.reporting.viewer import VIEWER_DIR, VIEWER_FILE, ViewerPage, vendor_viewer, write_viewer
 from ops.stages.bake import ASSET_GLB
-from ops.stages.checks import CHECKS, ERROR, QA_FILE, WARN, QACheck, QAReport, check, spec_of, stage_checks, verdict
+from ops.stages.checks import (
+    CHECKS,
+    ERROR,
+    QA_FILE,
+    WARN,
+    QACheck,
+    QAReport,
+    check,
+    read_report,
+    spec_of,
+    stage_checks,
+    verdict,
+)
+from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.qa_parts import compare_with_nerf
 
 QA_TURNTABLE_FILE = "turntable.png"
 QA_TURNTABLE_GIF = "turntable.gif"
-CODE_VERSION = "qa-3"  # 3: part_count and parts_kept
+CODE_VERSION = "qa-4"  # 3: part_count and parts_kept; 4: the export's checks and viewer.html
 
 
 @dataclass(frozen=True)
@@ -72,6 +87,8 @@ class QAConfig:
     """Warning below: share of the photo the object's mask covers (check ``reference.object_size``)."""
     max_guard_events: int = 10
     """Warning above: NaN/Inf guard events (skipped or rolled-back steps, restores) of an optimising stage."""
+    max_size_disagreement: float = 0.15
+    """Warning above: relative gap of a catalog dimension from the mesh sized by another (``export.true_size``)."""
     max_colour_deviation: float = 0.5
     """Warning above: 1 − Bhattacharyya coefficient (0–1) of turntable vs photo a*b* histograms (colour drift)."""
     min_hf_ratio: float = 0.05
@@ -286,6 +303,26 @@ def _finite_json(metrics: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()}
 
 
+def write_asset_viewer(out: Path, final_dir: Path, reference_dir: Path, export_dir: Path, key: str,
+                       export: dict[str, Any]) -> str | None:
+    """``viewer.html``: the web GLB at its real size, the photo, the dimensions and this verdict. Links are
+    relative to where the page will live (``final_dir``, beside the other stages' folders); the viewer's
+    script is vendored into the store once. Returns why the page cannot show the model, None when it can."""
+    report = read_report(out)
+    photos = sorted(Path(reference_dir).glob("rgba_*.png"))
+    up = os.path.relpath(export_dir, final_dir)
+    page = ViewerPage(
+        title=export.get("sku") or key, web_glb=(Path(export_dir) / MODEL_WEB_GLB).read_bytes(),
+        glb_href=f"{up}/{MODEL_GLB}", usdz_href=f"{up}/{MODEL_USDZ}" if export.get("usdz_bytes") else None,
+        photo_href=os.path.relpath(photos[-1], final_dir) if photos else None,
+        script_dir_href=os.path.relpath(Path(final_dir).parent.parent / VIEWER_DIR, final_dir),
+        size_mm={d: export[f"{d}_mm"] for d in ("width", "height", "depth") if f"{d}_mm" in export},
+        verdict=report.verdict, reasons=report.reasons, scale_source=export.get("scale_source", ""),
+        sku=export.get("sku", ""))
+    write_viewer(Path(out) / VIEWER_FILE, page)
+    return vendor_viewer(Path(final_dir).parent.parent)
+
+
 def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
     producers = [s for s in ctx.stages if s != "qa"]
     # Every producer is an input, the NeRF included (parts_kept renders it), so a changed NeRF
@@ -296,15 +333,22 @@ def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
         upstream = {s: ctx.upstream(s).metrics for s in producers}
         prior = ctx.upstream("texture").prior
         with Heartbeat(ctx.progress(), "qa", announce=True) as beat:  # one line at least every 10 s
-            return run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
-                          ctx.device, nerf_dir, beat.set_phase)
+            result = run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
+                            ctx.device, nerf_dir, beat.set_phase)
+        if "export" in producers:
+            missing = write_asset_viewer(out, ctx.dir("qa"), ctx.dir("reference"), ctx.dir("export"), ctx.key,
+                                         upstream["export"])
+            if missing:
+                result.notes.append(f"viewer.html cannot show the model: {missing}")
+        return result
 
     return StageWork({"qa": cfg}, body)
 
 
 STAGE = Stage(
-    "qa", CODE_VERSION, reads=("reference", "nerf", "dmtet", "texture", "bake"),
-    writes=(QA_FILE, QA_TURNTABLE_FILE, QA_TURNTABLE_GIF), preview=QA_TURNTABLE_FILE, gpu=False, build=_build,
+    "qa", CODE_VERSION, reads=("reference", "nerf", "dmtet", "texture", "bake", "export"),
+    writes=(QA_FILE, QA_TURNTABLE_FILE, QA_TURNTABLE_GIF, VIEWER_FILE), preview=QA_TURNTABLE_FILE, gpu=False,
+    build=_build,
     description="QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its parts "
                 "against the photo's mask and the NeRF's silhouettes, and every stage's checks; verdict "
-                "pass / warn / fail with reasons (qa.json).")
+                "pass / warn / fail with reasons (qa.json); viewer.html shows the asset at its real size.")
