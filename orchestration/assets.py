@@ -1,9 +1,9 @@
 """The photo source asset and the seven per-photo stage assets: thin wrappers over ``ops.engine.pipeline``.
 
 Each stage asset runs ``ops.engine.pipeline.run_stage`` for every photo partition of its step, then
-reports the store's manifest as metadata and the stage's QA checks (``ops.stages.qa.CHECKS``) as asset
-check results. A step covering several photos (a backfill batch) keeps going past a failing
-photo, records what finished, then fails naming the photos that did not, so a retry redoes only
+reports the store's manifest as metadata and the stage's QA checks (declared on its ``Stage``, gathered in
+``ops.stages.CHECKS``) as asset check results. A step covering several photos (a backfill batch) keeps going
+past a failing photo, records what finished, then fails naming the photos that did not, so a retry redoes only
 those (finished ones are cached; interrupted ones resume from their checkpoints). In such a step
 the GPU stages optimise their photos together (``ops.engine.pipeline.run_stage_batch``: one prior
 forward per step for all of them) unless ``MORPHEUS_BATCH_TOGETHER=0``.
@@ -21,13 +21,13 @@ from assets_store.keys import UnsafeKeyError
 from assets_store.photo_hashes import PhotoHashes
 from morpheus_core.priors.proxy.shape import EmptySilhouetteError
 from ops.config.tree import ConfigError
+from ops.engine.checks import ERROR, QACheck, read_report
 from ops.engine.pipeline import MissingUpstreamError, StageOutcome, output_digest
 from ops.engine.progress import HEARTBEAT_S, ProgressEvent
 from ops.engine.stage import Stage
 from ops.intake.errors import PreparationError
 from ops.reporting.progress import format_event
-from ops.stages import STAGES
-from ops.stages.checks import CHECKS, ERROR, QACheck, read_report, stage_checks
+from ops.stages import CHECKS, STAGES, stage_checks
 from orchestration.metadata import check_metadata, stage_metadata
 from orchestration.partitions import PHOTOS, photos
 from orchestration.resources import MorpheusResource, UnknownPhotoError

@@ -25,9 +25,9 @@ from typing import TextIO
 import dagster as dg
 
 from ops.config.preset_names import PRESET_NAMES
+from ops.engine.checks import read_report
 from ops.engine.gpu_lease import GPUS_ENV, SLOTS_ENV, gpu_count, gpu_slots
 from ops.stages.bake import ASSET_GLB
-from ops.stages.checks import read_report
 from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB, build_definitions
 from orchestration.history import migrate_history
@@ -96,8 +96,9 @@ def materialize(settings: OrchestrationSettings, names: Sequence[str]) -> int:
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header) - 1)]
     for row in [header, *rows]:
         print("  ".join(str(c).ljust(w) for c, w in zip(row, widths, strict=False)) + "  " + str(row[-1]))
-    print(f"\nQA reports: {settings.store_root}/<photo>/qa/qa.json · runs and previews: `make dagster`, "
-          "then http://127.0.0.1:3000/runs")
+    print(f"\nQA reports: {settings.store_root}/<photo>/qa/qa.json · 3D viewers at real size: "
+          f"{settings.store_root}/<photo>/qa/viewer.html · true-size GLB, web GLB, USDZ: "
+          f"{settings.store_root}/<photo>/export/ · runs and previews: `make dagster`, then http://127.0.0.1:3000/runs")
     return 1 if failed else 0
 
 

@@ -11,9 +11,9 @@ from typing import Any
 from dagster import MetadataValue
 
 from assets_store.manifest import Manifest
+from ops.engine.checks import QACheck
 from ops.engine.pipeline import StageOutcome
 from ops.stages import BY_ID
-from ops.stages.checks import QACheck
 
 MAX_PREVIEW_BYTES = 400_000  # the UI stores metadata in the event log: keep it small
 

@@ -18,8 +18,8 @@ from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.export.web_glb import SizeBudgetError
 from ops.intake.products import ProductsFileError
 from ops.reporting.viewer import ViewerPage, gallery_html, vendor_viewer, write_viewer
+from ops.stages import stage_checks
 from ops.stages.bake import ASSET_GLB
-from ops.stages.checks import stage_checks
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB, ExportStageConfig, export_asset, product_size
 from ops.stages.qa import QAConfig
 from tests.browser import missing_browser_parts

@@ -22,8 +22,9 @@ from PIL import Image
 from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
+from ops.engine.checks import read_report
 from ops.engine.stage_ids import STAGE_IDS
-from ops.stages.checks import CHECKS, read_report
+from ops.stages import CHECKS
 from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB
 from orchestration.partitions import PHOTOS

@@ -148,6 +148,9 @@ def test_qa_announces_its_measurements_and_beats(monkeypatch: pytest.MonkeyPatch
         def upstream(self, stage: str) -> object:
             return type("M", (), {"metrics": {}, "prior": "proxy"})()
 
+        def stage_checks(self, stage: str, thresholds: object) -> list:
+            return []
+
         def progress(self) -> Events:
             return events
 

@@ -27,7 +27,7 @@ from morpheus_core.part_silhouettes import compare_part_silhouettes, count_parts
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
 from ops.engine.artifacts import save_module
-from ops.stages.checks import read_report
+from ops.engine.checks import read_report
 from ops.stages.nerf import NERF_FILE
 from ops.stages.qa import QAConfig, run_qa
 from tests.seeds import fresh_seed

@@ -235,7 +235,7 @@ def test_qa_on_a_bundled_photo_then_the_report_in_chromium(tmp_path: Path, brows
 
     from selenium.webdriver.common.by import By
 
-    from ops.stages.checks import QA_FILE
+    from ops.engine.checks import QA_FILE
     from ops.stages.qa import QA_TURNTABLE_GIF
     from tests.pipeline_helpers import PHOTOS, cli_overrides, tiny_config
 

@@ -15,8 +15,7 @@ from ops.config.presets import PipelineConfig, preset
 from ops.config.tree import ConfigError, describe_keys
 from ops.engine.stage_ids import STAGE_IDS, current_stage_id
 from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES
-from ops.stages import BY_ID, STAGES
-from ops.stages.checks import CHECKS
+from ops.stages import BY_ID, CHECKS, STAGES
 from orchestration.definitions import build_definitions
 
 

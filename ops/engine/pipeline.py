@@ -28,6 +28,7 @@ from assets_store.store import StageWriter, Store
 from morpheus_core.execution import executing
 from ops.config.presets import PipelineConfig
 from ops.config.tree import to_dict
+from ops.engine.checks import CheckThresholds, QACheck
 from ops.engine.early_stop import whole_schedule_record
 from ops.engine.gpu_lease import GpuLease, leased_device, memory_hint
 from ops.engine.priors import WEIGHT_FREE, PriorsConfig, PriorSuite
@@ -37,7 +38,7 @@ from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
 from ops.engine.store_layout import adopt_layout1_checkpoint, checkpoint_path
 from ops.migrations import ADDED_SETTINGS
-from ops.stages import BY_ID, STAGES
+from ops.stages import BY_ID, STAGES, stage_checks
 from ops.stages.plan import StagePlan, read_plan
 
 log = logging.getLogger("morpheus3d")
@@ -197,6 +198,9 @@ class PhotoRun:
     def suite(self, stage: str) -> PriorSuite | None:
         factory = self.suites.get(stage)
         return factory() if factory is not None else None
+
+    def stage_checks(self, stage: str, thresholds: CheckThresholds) -> list[QACheck]:
+        return stage_checks(stage, self.upstream(stage).metrics, thresholds)
 
     def progress(self) -> ProgressFn | None:
         if self.reporter is None:

@@ -2,8 +2,8 @@
 
 A stage's id is its module name (``ops/stages/<id>.py``), its config key (``--set <id>.…``), its
 store folder (``<store>/<photo>/<id>/``) and its Dagster asset key. Each stage module declares one
-``Stage``; ``ops.stages.STAGES`` orders them, and the pipeline, the presets, the Dagster assets and
-the QA checks all read that tuple. A stage's ``build`` gets its own config (the ``<id>`` section of
+``Stage``, its QA checks included; ``ops.stages.STAGES`` orders them, and the pipeline, the presets, the
+Dagster assets and the QA checks all read that tuple. A stage's ``build`` gets its own config (the ``<id>`` section of
 the run's configuration) and the run context (``StageContext``: seed, device, priors, the photo's
 folders and upstream outputs), never the whole configuration.
 """
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
+from ops.engine.checks import CheckSpec, CheckThresholds, QACheck
 from ops.engine.progress import ProgressFn
 from ops.engine.stage_job import StageJob, StageResult
 
@@ -61,6 +62,9 @@ class StageContext(Protocol):
 
     def progress(self) -> ProgressFn | None: ...
 
+    def stage_checks(self, stage: str, thresholds: CheckThresholds) -> list[QACheck]:
+        """The checks ``stage`` declares, judged from its finished output's metrics (what ``qa`` gathers)."""
+
 
 @dataclass(frozen=True)
 class StageWork:
@@ -104,3 +108,7 @@ class Stage(Generic[C]):
     build: Callable[[StageContext, C], StageWork]
     """The stage's work for one photo, from the run context and the stage's own config."""
     replaced_by_init_mesh: bool = False
+    checks: tuple[CheckSpec, ...] = ()
+    """The QA checks of its output (the Dagster asset checks, the ``qa`` stage's report)."""
+    judge: Callable[[dict[str, Any], CheckThresholds], list[QACheck]] | None = None
+    """The outcome of ``checks`` from its manifest metrics (None: it judges its own output, as ``qa`` does)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -25,6 +26,7 @@ from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import load_module
+from ops.engine.checks import ERROR, WARN, CheckSpec, CheckThresholds, QACheck, check
 from ops.engine.previews import save_strip
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
@@ -117,8 +119,21 @@ def _build(ctx: StageContext, cfg: BakeStageConfig) -> StageWork:
     return StageWork({"bake": cfg, "planned_faces": faces}, body)
 
 
+REFERENCE_PSNR = CheckSpec("reference_psnr", ERROR, "the GLB's reference view reaches qa.min_ref_psnr dB")
+UV_COVERAGE = CheckSpec("uv_coverage", WARN, "the UV atlas covers at least qa.min_uv_coverage of the texture")
+
+
+def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
+    psnr = float(metrics.get("ref_psnr", float("nan")))
+    cover = float(metrics.get("uv_coverage", 0.0))
+    return [check(REFERENCE_PSNR, psnr >= cfg.min_ref_psnr, psnr, cfg.min_ref_psnr,
+                  f"reference view {psnr:.1f} dB (minimum {cfg.min_ref_psnr:.1f} dB)"),
+            check(UV_COVERAGE, cover >= cfg.min_uv_coverage, cover, cfg.min_uv_coverage,
+                  f"UV atlas covers {cover:.1%} of the texture (minimum {cfg.min_uv_coverage:.1%})")]
+
+
 STAGE = Stage(
     "bake", CODE_VERSION, reads=("reference", "dmtet", "texture"),
     writes=(ASSET_GLB, ASSET_OBJ, "asset.mtl", "asset.png", TURNTABLE_FILE, REFERENCE_VIEW_FILE),
-    preview=TURNTABLE_FILE, gpu=False, build=_build,
+    preview=TURNTABLE_FILE, gpu=False, build=_build, checks=(REFERENCE_PSNR, UV_COVERAGE), judge=_judge,
     description="UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews.")

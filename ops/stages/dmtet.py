@@ -43,6 +43,15 @@ from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
+from ops.engine.checks import (
+    ERROR,
+    STABLE_OPTIMISATION,
+    CheckSpec,
+    CheckThresholds,
+    QACheck,
+    check,
+    stable_optimisation,
+)
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import BadStep, LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -306,8 +315,16 @@ def _build(ctx: StageContext, cfg: DMTetStageConfig) -> StageWork:
     return optimising(config, start, ctx, inputs)
 
 
+MESH_NONEMPTY = CheckSpec("mesh_nonempty", ERROR, "the extracted mesh has faces")
+
+
+def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
+    faces = int(metrics.get("faces", 0))
+    return [check(MESH_NONEMPTY, faces > 0, faces, 1, f"{faces} faces"), *stable_optimisation(metrics, cfg)]
+
+
 STAGE = Stage(
     "dmtet", CODE_VERSION, reads=("reference", "nerf"),
     writes=(MESH_FILE, TEXTURE_FILE, DMTET_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE, gpu=True,
-    build=_build,
+    build=_build, checks=(MESH_NONEMPTY, STABLE_OPTIMISATION), judge=_judge,
     description="Stage 1b: DMTet surface initialised from the NeRF density, mesh and texture field refined.")

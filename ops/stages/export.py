@@ -17,7 +17,7 @@ the bottom centre (+Y up, front +Z: ``morpheus_core.export.true_size``) and writ
 Without a size the asset gets ``export.default_height_mm`` and ``scale_source: "default"`` in its metrics
 (and the catalog). Both GLBs go through the Khronos glTF-Validator (``make web-tools`` installs it; without
 Node.js the check is recorded as not run) and the USDZ through USD's ARKit compliance checker; the ``qa``
-stage fails an asset whose files do not validate (``ops.stages.checks``).
+stage fails an asset whose files do not validate (the ``formats_valid`` check).
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from morpheus_core.export.gltf_validator import validate_gltf, validator_availab
 from morpheus_core.export.true_size import fit_true_size
 from morpheus_core.export.usdz import check_usdz, export_usdz
 from morpheus_core.export.web_glb import write_web_glb
+from ops.engine.checks import ERROR, WARN, CheckSpec, CheckThresholds, QACheck, check
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
 from ops.intake.products import DIMENSIONS, ProductSize, products_for
@@ -191,7 +192,41 @@ def _build(ctx: StageContext, cfg: ExportStageConfig) -> StageWork:
     return StageWork({"export": cfg, "product": product}, body)
 
 
+FORMATS_VALID = CheckSpec("formats_valid", ERROR, "the true-size GLB, the web GLB and the USDZ pass their formats' "
+                                                  "validators (glTF-Validator, USD's ARKit checks) with 0 errors; a "
+                                                  "warning where a validator could not run")
+TRUE_SIZE = CheckSpec("true_size", WARN, "the size comes from the catalog (products.csv or export.*_mm) and its other "
+                                         "dimensions agree with the mesh within qa.max_size_disagreement")
+
+
+def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
+    return [_formats_valid(metrics), _true_size(metrics, cfg)]
+
+
+def _formats_valid(metrics: dict[str, Any]) -> QACheck:
+    """Errors of every validated file; a validator that did not run makes this a warning, not a pass."""
+    errors = {k.removesuffix("_errors"): int(v) for k, v in metrics.items() if k.endswith("_errors") and v}
+    counted = [k for k in metrics if k.endswith("_errors")]
+    if errors:
+        detail = "; ".join(str(m) for k in errors for m in metrics.get(f"{k}_messages", [])[:3])
+        return check(FORMATS_VALID, False, sum(errors.values()), 0,
+                     f"validator errors in {', '.join(f'{k} ({n})' for k, n in errors.items())}: {detail}")
+    missing = metrics.get("gltf_validator", "not run")
+    if missing != "ran" or not counted:
+        return check(FORMATS_VALID, False, None, 0, f"not validated: {missing}", severity=WARN)
+    return check(FORMATS_VALID, True, 0, 0, f"0 errors in {', '.join(k.removesuffix('_errors') for k in counted)}")
+
+
+def _true_size(metrics: dict[str, Any], cfg: CheckThresholds) -> QACheck:
+    source, off = metrics.get("scale_source", "default"), float(metrics.get("size_disagreement", 0.0))
+    ok = source != "default" and off <= cfg.max_size_disagreement
+    allowed = cfg.max_size_disagreement
+    why = ("no size in products.csv or export.height_mm: sized by export.default_height_mm" if source == "default"
+           else f"sized from {source}; other dimensions {off:.0%} off the mesh (allowed {allowed:.0%})")
+    return check(TRUE_SIZE, ok, round(off, 4), cfg.max_size_disagreement, why)
+
+
 STAGE = Stage(
     "export", CODE_VERSION, reads=("bake",), writes=(MODEL_GLB, MODEL_WEB_GLB, MODEL_USDZ, SIZE_CARD),
-    preview=SIZE_CARD, gpu=False, build=_build,
+    preview=SIZE_CARD, gpu=False, build=_build, checks=(FORMATS_VALID, TRUE_SIZE), judge=_judge,
     description="The asset at its real size: GLB, web-sized GLB and USDZ, checked by the formats' validators.")

@@ -24,6 +24,7 @@ from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.sample_budget import SampleBudget
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
+from ops.engine.checks import STABLE_OPTIMISATION, stable_optimisation
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -216,4 +217,5 @@ def _build(ctx: StageContext, cfg: NerfStageConfig) -> StageWork:
 STAGE = Stage(
     "nerf", CODE_VERSION, reads=("reference",), writes=(NERF_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE,
     gpu=True, build=_build, replaced_by_init_mesh=True,
+    checks=(STABLE_OPTIMISATION,), judge=stable_optimisation,
     description="Stage 1a: hash-grid NeRF fitted to the reference under the 3D prior (SDS, t annealed 0.98 → 0.5).")

@@ -39,6 +39,7 @@ from morpheus_core.metrics.mesh_health import mesh_health
 from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weighted_metrics
 from morpheus_core.part_silhouettes import count_parts
 from morpheus_core.render.textured import load_textured, render_textured
+from ops.engine.checks import ERROR, QA_FILE, WARN, CheckSpec, QACheck, QAReport, check, read_report, verdict
 from ops.engine.previews import save_strip, to_uint8
 from ops.engine.progress import Heartbeat
 from ops.engine.stage import Stage, StageContext, StageWork
@@ -46,21 +47,25 @@ from ops.engine.stage_job import StageResult
 from ops.engine.target import ReferenceTarget, reference_psnr
 from ops.reporting.viewer import VIEWER_DIR, VIEWER_FILE, ViewerPage, vendor_viewer, write_viewer
 from ops.stages.bake import ASSET_GLB
-from ops.stages.checks import (
-    CHECKS,
-    ERROR,
-    QA_FILE,
-    WARN,
-    QACheck,
-    QAReport,
-    check,
-    read_report,
-    spec_of,
-    stage_checks,
-    verdict,
-)
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.qa_parts import compare_with_nerf
+
+# The qa stage's own checks (it judges its own output; the producing stages declare theirs on their ``Stage``).
+QA_CHECKS: dict[str, CheckSpec] = {s.name: s for s in (
+    CheckSpec("asset_finite", ERROR, "every vertex, UV and texel of the GLB is finite"),
+    CheckSpec("mask_iou", ERROR, "the GLB's reference silhouette matches the photo's mask (IoU)"),
+    CheckSpec("watertight", WARN, "the mesh is closed (an error when qa.require_watertight)"),
+    CheckSpec("degenerate_faces", WARN, "at most qa.max_degenerate_fraction of the faces have ~zero area"),
+    CheckSpec("colour_deviation", WARN, "novel views keep the photo's colours (a*b* histogram distance "
+                                         "at most qa.max_colour_deviation)"),
+    CheckSpec("hf_ratio", WARN, "novel views keep at least qa.min_hf_ratio of the photo's high-frequency "
+                                 "detail"),
+    CheckSpec("part_count", WARN, "the GLB has no more connected components than the photo's mask has "
+                                  "silhouette parts (pieces of at least qa.min_part_share of its area)"),
+    CheckSpec("parts_kept", ERROR, "from qa.part_views novel views, no region the NeRF shows larger than "
+                                   "qa.max_missing_part_share of its silhouette is missing from the GLB, "
+                                   "and the silhouette IoU stays at least qa.min_part_iou"),
+    CheckSpec("verdict", ERROR, "no error-severity check failed in any stage"))}
 
 QA_TURNTABLE_FILE = "turntable.png"
 QA_TURNTABLE_GIF = "turntable.gif"
@@ -181,7 +186,7 @@ def _weighted(cfg: QAConfig, photo: torch.Tensor, mask: torch.Tensor, views: tor
 
 
 def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
-           upstream: dict[str, dict[str, Any]], prior: str = "", device: str = "auto",
+           upstream: dict[str, list[QACheck]], prior: str = "", device: str = "auto",
            nerf_dir: Path | None = None, phase: Callable[[str], None] | None = None) -> StageResult:
     """Measure the written GLB and gather every stage's checks into ``qa.json``.
 
@@ -190,8 +195,8 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     energy relative to the photo and colour deviation (a*b* histograms inside the masks); mesh
     health (components, watertight, winding, Euler number, degenerate faces, UV coverage, texel
     density, seam leakage); the learned metrics whose weights are installed (others are recorded
-    as skipped). ``upstream`` maps stage → its manifest metrics: the producing stages' checks are
-    re-evaluated here with this config's thresholds, so the verdict is one consistent decision.
+    as skipped). ``upstream`` maps stage → its checks, judged from its manifest metrics with this config's
+    thresholds (``StageContext.stage_checks``), so the verdict is one consistent decision.
     Parts: the photo mask's silhouette parts against the GLB's components, and the GLB's
     silhouettes against the NeRF's in ``nerf_dir`` (the ``nerf`` stage's output; None when the
     asset has no NeRF stage, which leaves ``parts_kept`` unmeasured). ``phase`` hears which
@@ -202,9 +207,9 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     out_dir = Path(out_dir)
     phase("loading the GLB, mesh health")
     asset = load_textured(glb_path).to(dev)
-    checks: dict[str, list[QACheck]] = {s: stage_checks(s, m, cfg) for s, m in upstream.items() if s in CHECKS}
+    checks: dict[str, list[QACheck]] = {s: c for s, c in upstream.items() if c}
     finite = all(bool(torch.isfinite(t).all()) for t in (asset.vertices, asset.uvs, asset.texture))
-    own: list[QACheck] = [check(spec_of("qa", "asset_finite"), finite, finite, True,
+    own: list[QACheck] = [check(QA_CHECKS["asset_finite"], finite, finite, True,
                                  "finite" if finite else "the GLB holds NaN/Inf values")]
     health = mesh_health(asset.vertices.cpu(), asset.faces.cpu(), asset.uvs.cpu(), asset.texture.cpu())
     metrics: dict[str, Any] = {k: v for k, v in health.items()}
@@ -236,15 +241,15 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
         for name, w in weighted.items():
             metrics[name] = w["value"]
         iou = metrics["mask_iou"]
-        own.append(check(spec_of("qa", "mask_iou"), iou >= cfg.min_mask_iou, iou, cfg.min_mask_iou,
+        own.append(check(QA_CHECKS["mask_iou"], iou >= cfg.min_mask_iou, iou, cfg.min_mask_iou,
                           f"silhouette IoU {iou:.3f} (minimum {cfg.min_mask_iou})"))
         dev_c = metrics["colour_deviation"]
-        own.append(check(spec_of("qa", "colour_deviation"), dev_c is not None and dev_c <= cfg.max_colour_deviation,
+        own.append(check(QA_CHECKS["colour_deviation"], dev_c is not None and dev_c <= cfg.max_colour_deviation,
                           dev_c, cfg.max_colour_deviation,
                           "not measured (empty masks)" if dev_c is None else
                           f"a*b* histogram distance {dev_c:.3f} (maximum {cfg.max_colour_deviation})"))
         hf = metrics["hf_ratio"]
-        own.append(check(spec_of("qa", "hf_ratio"), hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
+        own.append(check(QA_CHECKS["hf_ratio"], hf is None or hf >= cfg.min_hf_ratio, hf, cfg.min_hf_ratio,
                           "not measured (flat photo)" if hf is None else
                           f"novel views keep {hf:.2f}× the photo's high-frequency share (minimum {cfg.min_hf_ratio})"))
         phase("parts against the photo's mask and the NeRF's silhouettes")
@@ -252,16 +257,16 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
     else:
         reason = "not measured: non-finite asset" if not finite else "not measured: the GLB has no faces"
         for name in ("mask_iou", "colour_deviation", "hf_ratio", "part_count", "parts_kept"):
-            own.append(check(spec_of("qa", name), False, None, None, reason))
+            own.append(check(QA_CHECKS[name], False, None, None, reason))
     closed = bool(health["watertight"])
-    own.append(check(spec_of("qa", "watertight"), closed, closed, True,
+    own.append(check(QA_CHECKS["watertight"], closed, closed, True,
                       "closed" if closed else "the mesh has open edges", ERROR if cfg.require_watertight else WARN))
     degenerate = (health["degenerate_faces"] or 0) / max(1, health["faces"] or 0)
-    own.append(check(spec_of("qa", "degenerate_faces"), degenerate <= cfg.max_degenerate_fraction, round(degenerate, 5),
+    own.append(check(QA_CHECKS["degenerate_faces"], degenerate <= cfg.max_degenerate_fraction, round(degenerate, 5),
                       cfg.max_degenerate_fraction, f"{degenerate:.2%} of the faces are degenerate"))
     everything = [c for cs in checks.values() for c in cs] + own
     decision, reasons = verdict(everything)
-    own.append(check(spec_of("qa", "verdict"), decision != "fail", decision, "pass or warn",
+    own.append(check(QA_CHECKS["verdict"], decision != "fail", decision, "pass or warn",
                       "; ".join(reasons) if reasons else "every check passed"))
     checks["qa"] = own
     report = QAReport(decision, reasons, {s: [asdict(c) for c in cs] for s, cs in checks.items()},
@@ -276,9 +281,9 @@ def _part_checks(cfg: QAConfig, asset: Any, mask: torch.Tensor, components: int,
     """``part_count`` and ``parts_kept``; records ``mask_parts`` and the NeRF comparison in ``metrics``."""
     parts = count_parts(mask, cfg.min_part_share)
     metrics["mask_parts"] = parts
-    out = [check(spec_of("qa", "part_count"), components <= parts, components, parts,
+    out = [check(QA_CHECKS["part_count"], components <= parts, components, parts,
                   f"the GLB has {components} connected component(s), the photo's mask {parts} silhouette part(s)")]
-    spec = spec_of("qa", "parts_kept")
+    spec = QA_CHECKS["parts_kept"]
     threshold = {"max_missing_part_share": cfg.max_missing_part_share, "min_part_iou": cfg.min_part_iou}
     found = compare_with_nerf(asset, nerf_dir, cfg.part_views, cfg.part_resolution, cfg.part_samples,
                               cfg.turntable_elevation, cfg.part_opening, cfg.part_margin, dev)
@@ -330,14 +335,14 @@ def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
     nerf_dir = ctx.dir("nerf") if "nerf" in producers else None
 
     def body(out: Path, _ckpt: Path | None) -> StageResult:
-        upstream = {s: ctx.upstream(s).metrics for s in producers}
+        upstream = {s: ctx.stage_checks(s, cfg) for s in producers}
         prior = ctx.upstream("texture").prior
         with Heartbeat(ctx.progress(), "qa", announce=True) as beat:  # one line at least every 10 s
             result = run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
                             ctx.device, nerf_dir, beat.set_phase)
         if "export" in producers:
             missing = write_asset_viewer(out, ctx.dir("qa"), ctx.dir("reference"), ctx.dir("export"), ctx.key,
-                                         upstream["export"])
+                                         ctx.upstream("export").metrics)
             if missing:
                 result.notes.append(f"viewer.html cannot show the model: {missing}")
         return result
@@ -348,7 +353,7 @@ def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
 STAGE = Stage(
     "qa", CODE_VERSION, reads=("reference", "nerf", "dmtet", "texture", "bake", "export"),
     writes=(QA_FILE, QA_TURNTABLE_FILE, QA_TURNTABLE_GIF, VIEWER_FILE), preview=QA_TURNTABLE_FILE, gpu=False,
-    build=_build,
+    build=_build, checks=tuple(QA_CHECKS.values()),
     description="QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its parts "
                 "against the photo's mask and the NeRF's silhouettes, and every stage's checks; verdict "
                 "pass / warn / fail with reasons (qa.json); viewer.html shows the asset at its real size.")

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from ops.engine.checks import WARN, CheckSpec, CheckThresholds, QACheck, check
 from ops.engine.previews import PREVIEW_FILE, save_mask_overlay
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
@@ -36,9 +38,18 @@ def _build(ctx: StageContext, cfg: ReferenceStageConfig) -> StageWork:
     return StageWork({"prepare": cfg.prepare, "plan": cfg.plan}, body, inputs={"photo": ctx.photo_hash()})
 
 
+OBJECT_SIZE = CheckSpec("object_size", WARN, "the object covers at least qa.min_area_fraction of the photo")
+
+
+def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
+    area = float(metrics.get("area_fraction", 0.0))
+    return [check(OBJECT_SIZE, area >= cfg.min_area_fraction, area, cfg.min_area_fraction,
+                  f"object covers {area:.1%} of the photo (minimum {cfg.min_area_fraction:.1%})")]
+
+
 STAGE = Stage(
     "reference", CODE_VERSION, reads=(),
     writes=(REFERENCE_FILE, PLAN_FILE, "rgba_<size>.png", "mask_<size>.png", PREVIEW_FILE), preview=PREVIEW_FILE,
-    gpu=False, build=_build,
+    gpu=False, build=_build, checks=(OBJECT_SIZE,), judge=_judge,
     description="Segmentation, mask and recentred reference views of the photo, plus the stage plan "
                 "(DMTet grid, whether high-pass refinement pays, export face budget).")

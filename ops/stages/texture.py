@@ -23,6 +23,7 @@ from morpheus_core.guidance_presets import TEXTURE_GUIDANCE, GuidanceSettings
 from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
+from ops.engine.checks import STABLE_OPTIMISATION, stable_optimisation
 from ops.engine.guided_task import GuidedTask, RenderedStep
 from ops.engine.loop import LoopConfig, LoopResult
 from ops.engine.previews import PREVIEW_FILE, save_stage_preview
@@ -145,5 +146,6 @@ def _build(ctx: StageContext, cfg: TextureStageConfig) -> StageWork:
 STAGE = Stage(
     "texture", CODE_VERSION, reads=("reference", "dmtet"), writes=(TEXTURE_FILE, PREVIEW_FILE, RUNLOG_FILE),
     preview=PREVIEW_FILE, gpu=True, build=_build,
+    checks=(STABLE_OPTIMISATION,), judge=stable_optimisation,
     description="Stage 2: texture refined with the 3D prior (full band) and the 2D prior's VSD on the high "
                 "frequencies; a recorded pass-through when the plan finds the texture flat.")
