@@ -91,10 +91,10 @@ def test_second_run_is_cached_and_one_change_reruns_only_what_follows(tmp_path: 
     again = run_photo(PHOTOS / "mug.jpg", store, tiny_config(), "tiny", KEY)
     assert [s.status for s in again.stages] == ["cached"] * len(STAGE_IDS) and again.wall_s == 0.0
     changed = run_photo(PHOTOS / "mug.jpg", store, tiny_config("texture.lr_grid=0.02"), "tiny", KEY)
-    assert [s.status for s in changed.stages] == ["cached", "cached", "cached", "ran", "ran", "ran"]
+    assert [s.status for s in changed.stages] == ["cached"] * 3 + ["ran"] * (len(STAGE_IDS) - 3)
     assert output_hashes(store, KEY, "texture") != output_hashes(src, KEY, "texture")
     back = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.laplacian_weight=20"), "tiny", KEY)
-    assert [s.status for s in back.stages] == ["cached", "cached", "ran", "ran", "ran", "ran"]
+    assert [s.status for s in back.stages] == ["cached"] * 2 + ["ran"] * (len(STAGE_IDS) - 2)
 
 
 class NaNOnSomeSteps(ProxyPrior):
