@@ -34,9 +34,9 @@ from morpheus_core.imaging import bbox, object_high_frequency_ratio, recentre
 from morpheus_core.mask_ops import iou
 from ops.intake.errors import PreparationError
 from ops.intake.photo import load_photo
+from ops.intake.plan import MEASURE_SIZE, PlanConfig
 from ops.intake.prepare import prepare_reference
 from ops.intake.segment import SegmentConfig, Segmenter
-from ops.stages.plan import MEASURE_SIZE, PlanConfig
 from tests.photo_factory import (
     BACKGROUNDS,
     SHAPES,

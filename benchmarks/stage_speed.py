@@ -37,9 +37,9 @@ from ops.engine.loop import LoopConfig, run_loop
 from ops.engine.pipeline import run_photo
 from ops.engine.priors import build_suite
 from ops.engine.target import ReferenceTarget
+from ops.intake.plan import read_plan
 from ops.stages.dmtet import DMTetTask, choose_grid, init_from_nerf
 from ops.stages.nerf import NERF_FILE, NerfTask
-from ops.stages.plan import read_plan
 from ops.stages.texture import TextureTask
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -301,10 +301,10 @@ def prepare(args: argparse.Namespace) -> int:
     them on stderr (``--allow-failures``: exit 0, for folders where some bad files are expected)."""
     from ops.intake.photo import LoadConfig
     from ops.intake.photo_folder import list_photos
+    from ops.intake.plan import PlanConfig
     from ops.intake.prepare import PrepareConfig
     from ops.intake.prepare_batch import failed_photos, format_table, prepare_many, print_progress
     from ops.intake.segment import SegmentConfig
-    from ops.stages.plan import PlanConfig
 
     try:
         cfg = PrepareConfig(

@@ -16,8 +16,8 @@ from ops.config.presets import PipelineConfig, preset
 from ops.config.tree import ConfigError
 from ops.engine.pipeline import run_setup, stage_config_record
 from ops.engine.stage_ids import STAGE_IDS
+from ops.intake.plan import StagePlan
 from ops.stages import STAGES
-from ops.stages.plan import StagePlan
 from tests.pipeline_helpers import PHOTOS
 
 

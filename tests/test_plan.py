@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from ops.intake.plan import PLAN_FILE, PlanConfig, StagePlan, make_plan, plan_reference, read_plan
 from ops.intake.prepare import prepare_reference, read_reference
-from ops.stages.plan import PLAN_FILE, PlanConfig, StagePlan, make_plan, plan_reference, read_plan
 from tests.photo_factory import PhotoSpec, product_photo
 
 

@@ -18,9 +18,9 @@ from morpheus_core.mask_ops import border_ring, classical_segment, fit_backgroun
 from morpheus_core.priors.proxy.shape import InflationConfig, from_reference_folder
 from ops.cli import main
 from ops.intake.errors import LowConfidenceError
+from ops.intake.plan import plan_reference
 from ops.intake.prepare import prepare_reference, read_reference
 from ops.intake.segment import SegmentConfig, Segmenter
-from ops.stages.plan import plan_reference
 from tests.photo_factory import SHAPES, multipart_photo, white_on_white_photo
 
 SKIMAGE = pytest.importorskip("skimage.data")

@@ -37,9 +37,9 @@ from ops.engine.stage import StageWork
 from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
 from ops.engine.store_layout import adopt_layout1_checkpoint, checkpoint_path
+from ops.intake.plan import StagePlan, read_plan
 from ops.migrations import ADDED_SETTINGS
 from ops.stages import BY_ID, STAGES, stage_checks
-from ops.stages.plan import StagePlan, read_plan
 
 log = logging.getLogger("morpheus3d")
 

@@ -22,7 +22,7 @@ from ops.engine.stage_job import StageJob, StageResult
 if TYPE_CHECKING:
     from assets_store.manifest import Manifest
     from ops.engine.priors import PriorsConfig, PriorSuite
-    from ops.stages.plan import StagePlan
+    from ops.intake.plan import StagePlan
 
 
 class StageContext(Protocol):

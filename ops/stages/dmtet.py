@@ -41,7 +41,7 @@ from morpheus_core.guidance_presets import DMTET_GUIDANCE, GuidanceSettings
 from morpheus_core.loss_balance import mask_bce
 from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.render.textured import load_textured, sample_surface
-from morpheus_core.texture import TextureField, TextureFieldConfig
+from morpheus_core.texture import TextureField, TextureFieldConfig, fit_colour_field, jittered_surface_points
 from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
 from ops.engine.checks import (
     ERROR,
@@ -61,7 +61,6 @@ from ops.engine.render_phases import Phase, RenderSchedule, check_phases
 from ops.engine.stage import Stage, StageContext, StageWork, optimising
 from ops.engine.stage_job import StageJob, StageResult, loop_metrics
 from ops.engine.target import ReferenceTarget, novel_cameras
-from ops.stages.colour_fit import fit_colour_field, jittered_surface_points
 from ops.stages.nerf import load_nerf
 
 MESH_FILE = "mesh.safetensors"

@@ -1,5 +1,5 @@
 """Stage 0: the photo segmented and recentred (``ops.intake.prepare``), and the plan for the later
-stages (``ops.stages.plan``). CPU only; seconds per photo."""
+stages (``ops.intake.plan``). CPU only; seconds per photo."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from ops.engine.checks import WARN, CheckSpec, CheckThresholds, QACheck, check
 from ops.engine.previews import PREVIEW_FILE, save_mask_overlay
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
+from ops.intake.plan import PLAN_FILE, PlanConfig, plan_reference
 from ops.intake.prepare import REFERENCE_FILE, PrepareConfig, prepare_reference
-from ops.stages.plan import PLAN_FILE, PlanConfig, plan_reference
 
 CODE_VERSION = "reference-3"  # 2: the mask-overlay preview; 3: edge cue, every part, confidence
 
