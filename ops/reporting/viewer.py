@@ -12,7 +12,6 @@ or a file manager is exactly that.
 from __future__ import annotations
 
 import base64
-import hashlib
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,7 +43,7 @@ def vendor_viewer(store_root: Path) -> str | None:
             return str(exc)
         dest = target / name
         data = source.read_bytes()
-        if not dest.is_file() or hashlib.sha256(dest.read_bytes()).digest() != hashlib.sha256(data).digest():
+        if not dest.is_file() or dest.read_bytes() != data:
             atomic_write_bytes(dest, data)
     return None
 
