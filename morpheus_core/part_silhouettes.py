@@ -19,7 +19,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from morpheus_core.cameras import Cameras, OrbitConfig, orbit
 from morpheus_core.geometry.mesh_hygiene import connected_labels
+from morpheus_core.geometry.nerf import NerfField
+from morpheus_core.render.textured import TexturedMesh, render_textured
+from morpheus_core.render.volume import OccupancyGrid, render_silhouette
 
 _NEIGHBOURS = ((0, 1), (1, -1), (1, 0), (1, 1))  # half of the 8-neighbourhood: each pair once
 
@@ -134,3 +138,28 @@ def compare_part_silhouettes(reference: Tensor, candidate: Tensor, opening: int 
         largest = int(mask_components(m)[1][0]) if bool(m.any()) else 0
         shares.append(largest / area if area else 0.0)
     return PartComparison(tuple(ious), tuple(shares))
+
+
+# The NeRF against the exported mesh (the qa stage's ``parts_kept``): silhouettes from a few novel views.
+SILHOUETTE_LEVEL = 0.5
+
+
+def part_cameras(n: int, elevation_deg: float) -> Cameras:
+    """``n`` azimuths evenly around the object, offset by half a step from the reference view (0°),
+    which the photo's mask already judges."""
+    azim = (torch.arange(n, dtype=torch.float64) + 0.5) * (360.0 / n)
+    azim = torch.where(azim > 180.0, azim - 360.0, azim).float()
+    cfg = OrbitConfig()  # the turntable's cameras: same distance and field of view
+    return orbit(elevation_deg, azim, cfg.distance, cfg.fov_deg, cfg.near, cfg.far)
+
+
+def nerf_silhouettes(nerf: NerfField, occupancy: OccupancyGrid | None, cameras: Cameras, resolution: int,
+                     n_samples: int) -> Tensor:
+    """(N, H, W) bool: the NeRF's opacity above one half."""
+    return render_silhouette(nerf, cameras, resolution, resolution, n_samples, occupancy, SILHOUETTE_LEVEL).cpu()
+
+
+@torch.no_grad()
+def asset_silhouettes(asset: TexturedMesh, cameras: Cameras, resolution: int) -> Tensor:
+    """(N, H, W) bool: the GLB's rendered opacity above one half."""
+    return render_textured(asset, cameras, resolution, resolution).opacity[..., 0].float().cpu() > SILHOUETTE_LEVEL

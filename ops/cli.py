@@ -176,9 +176,9 @@ def report_command(args: argparse.Namespace) -> int:
     from assets_store.catalog_files import CatalogError
     from assets_store.store import Store
     from ops.reporting.asset_metrics import asset_rows
+    from ops.reporting.gallery import GALLERY_FILE, gallery_assets, gallery_html
     from ops.reporting.report import build_report, write_report
     from ops.reporting.report_sections import ReportOptions
-    from ops.reporting.viewer import GALLERY_FILE, gallery_assets, gallery_html
 
     if args.store is None and args.catalog is None:
         print("morpheus3d report: give --store DIR (or --catalog DIR)", file=sys.stderr)

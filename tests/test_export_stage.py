@@ -16,8 +16,9 @@ from morpheus_core.export.gltf import decode_glb, encode_glb
 from morpheus_core.export.gltf_validator import validator_available
 from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.export.web_glb import SizeBudgetError
+from ops.engine.viewer_page import ViewerPage, vendor_viewer, write_viewer
 from ops.intake.products import ProductsFileError
-from ops.reporting.viewer import ViewerPage, gallery_html, vendor_viewer, write_viewer
+from ops.reporting.gallery import gallery_html
 from ops.stages import stage_checks
 from ops.stages.bake import ASSET_GLB
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB, ExportStageConfig, export_asset, product_size

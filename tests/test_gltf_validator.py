@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from morpheus_core.export.glb_geometry import meshopt_available
 from morpheus_core.export.gltf import encode_glb
 from morpheus_core.export.gltf_validator import (
     TOOLS_ENV,
@@ -25,7 +26,7 @@ from morpheus_core.export.gltf_validator import (
     validate_gltf,
     validator_available,
 )
-from morpheus_core.export.web_glb import encode_web_glb, meshopt_available
+from morpheus_core.export.web_glb import encode_web_glb
 from tests.test_web_glb import random_baked
 
 

@@ -26,16 +26,9 @@ import pytest
 from PIL import Image, ImageDraw
 from scipy.spatial import cKDTree
 
+from morpheus_core.export.glb_geometry import EXT_MESHOPT, EXT_QUANTIZATION, meshopt_available
 from morpheus_core.export.uv_bake import BakedTexture
-from morpheus_core.export.web_glb import (
-    EXT_MESHOPT,
-    EXT_QUANTIZATION,
-    EXT_WEBP,
-    SizeBudgetError,
-    encode_web_glb,
-    meshopt_available,
-    write_web_glb,
-)
+from morpheus_core.export.web_glb import EXT_WEBP, SizeBudgetError, encode_web_glb, write_web_glb
 
 REPO = Path(__file__).resolve().parents[1]
 WEB_TOOLS = REPO / "tools" / "web" / "node_modules"

@@ -32,9 +32,9 @@ from ops.engine.artifacts import RUNLOG_FILE
 from ops.engine.checks import QA_FILE, read_report
 from ops.engine.pipeline import PhotoOutcome
 from ops.engine.stage_ids import STAGE_IDS
+from ops.engine.viewer_page import VIEWER_FILE
 from ops.migrations import RENAMED_STAGES
 from ops.reporting.stage_columns import NOT_WORK, current_stage_columns
-from ops.reporting.viewer import VIEWER_FILE
 from ops.stages.bake import ASSET_GLB
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.qa import QA_TURNTABLE_FILE

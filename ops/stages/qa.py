@@ -29,26 +29,30 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
-from torch import Tensor
 
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
-from morpheus_core.cameras import Cameras, OrbitConfig, orbit, turntable
+from morpheus_core.cameras import turntable
 from morpheus_core.devices import pick_device
-from morpheus_core.geometry.nerf import NerfField
 from morpheus_core.metrics.colour_deviation import colour_deviation
 from morpheus_core.metrics.image import hf_ratio, mask_iou, masked_psnr, masked_ssim, ssim
 from morpheus_core.metrics.mesh_health import mesh_health
 from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weighted_metrics
-from morpheus_core.part_silhouettes import PartComparison, compare_part_silhouettes, count_parts
+from morpheus_core.part_silhouettes import (
+    PartComparison,
+    asset_silhouettes,
+    compare_part_silhouettes,
+    count_parts,
+    nerf_silhouettes,
+    part_cameras,
+)
 from morpheus_core.render.textured import TexturedMesh, load_textured, render_textured
-from morpheus_core.render.volume import OccupancyGrid, render_silhouette
 from ops.engine.checks import ERROR, QA_FILE, WARN, CheckSpec, QACheck, QAReport, check, read_report, verdict
 from ops.engine.previews import save_strip, to_uint8
 from ops.engine.progress import Heartbeat
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
 from ops.engine.target import ReferenceTarget, reference_psnr
-from ops.reporting.viewer import VIEWER_DIR, VIEWER_FILE, ViewerPage, vendor_viewer, write_viewer
+from ops.engine.viewer_page import VIEWER_DIR, VIEWER_FILE, ViewerPage, vendor_viewer, write_viewer
 from ops.stages.bake import ASSET_GLB
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.nerf import NERF_FILE, load_nerf
@@ -191,30 +195,6 @@ def _weighted(cfg: QAConfig, photo: torch.Tensor, mask: torch.Tensor, views: tor
 # ``parts_kept``: the GLB's silhouettes against the NeRF's from a few novel views. The NeRF is what the photo and
 # the prior agreed on before DMTet's fixed iso-level and floater removal; where it is opaque and the mesh is not,
 # from any side, the mesh lost a part.
-SILHOUETTE_LEVEL = 0.5
-
-
-def part_cameras(n: int, elevation_deg: float) -> Cameras:
-    """``n`` azimuths evenly around the object, offset by half a step from the reference view (0°),
-    which the photo's mask already judges."""
-    azim = (torch.arange(n, dtype=torch.float64) + 0.5) * (360.0 / n)
-    azim = torch.where(azim > 180.0, azim - 360.0, azim).float()
-    cfg = OrbitConfig()  # the turntable's cameras: same distance and field of view
-    return orbit(elevation_deg, azim, cfg.distance, cfg.fov_deg, cfg.near, cfg.far)
-
-
-def nerf_silhouettes(nerf: NerfField, occupancy: OccupancyGrid | None, cameras: Cameras, resolution: int,
-                     n_samples: int) -> Tensor:
-    """(N, H, W) bool: the NeRF's opacity above one half."""
-    return render_silhouette(nerf, cameras, resolution, resolution, n_samples, occupancy, SILHOUETTE_LEVEL).cpu()
-
-
-@torch.no_grad()
-def asset_silhouettes(asset: TexturedMesh, cameras: Cameras, resolution: int) -> Tensor:
-    """(N, H, W) bool: the GLB's rendered opacity above one half."""
-    return render_textured(asset, cameras, resolution, resolution).opacity[..., 0].float().cpu() > SILHOUETTE_LEVEL
-
-
 def compare_with_nerf(asset: TexturedMesh, nerf_dir: Path | None, views: int, resolution: int, n_samples: int,
                       elevation_deg: float, opening: int, margin: int, device: torch.device) -> PartComparison | None:
     """The GLB against the NeRF from ``views`` novel views; None when there is no NeRF output (an

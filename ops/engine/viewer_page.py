@@ -1,5 +1,5 @@
-"""The page per asset people can turn: the GLB at its real size in ``<model-viewer>``, the photo, the dimensions
-and the QA verdict; and the catalog gallery linking every asset's page, filterable by verdict.
+"""The page per asset people can turn (the ``qa`` stage writes it beside ``qa.json``): the web GLB at its real size
+in ``<model-viewer>``, the photo, the dimensions and the QA verdict (``ops.reporting.gallery`` links them all).
 
 ``<model-viewer>`` (Google, Apache-2.0) comes from npm (``tools/web``, ``make web-tools``) and is copied once per
 store into ``<store>/.viewer/`` (the leading dot keeps it out of the photo keys), so the pages work offline from
@@ -12,19 +12,16 @@ or a file manager is exactly that.
 from __future__ import annotations
 
 import base64
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from html import escape
 from pathlib import Path
-from typing import Any
 
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
 from morpheus_core.export.web_tools import web_tool
-from ops.reporting.html import esc
 
 VIEWER_DIR = ".viewer"
 VIEWER_FILE = "viewer.html"
-GALLERY_FILE = "gallery.html"
 # The UMD build is a classic script: browsers refuse module scripts from file:// pages.
 MODEL_VIEWER_JS = "@google/model-viewer/dist/model-viewer-umd.min.js"
 # A classic script defining ``self.MeshoptDecoder``, which model-viewer loads from ``meshoptDecoderLocation``.
@@ -65,7 +62,7 @@ class ViewerPage:
     sku: str = ""
 
 
-_PAGE_CSS = """
+PAGE_CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1200px;padding:1em 2em;
 color:#222}
 .row{display:flex;flex-wrap:wrap;gap:1.5em;align-items:flex-start}
@@ -84,35 +81,35 @@ def viewer_html(page: ViewerPage) -> str:
     """The page as a string (every text from the catalog escaped)."""
     size = page.size_mm
     dims = " × ".join(f"{size[k]:.0f}" for k in ("width", "height", "depth") if k in size)
-    ar = f' ios-src="{esc(page.usdz_href)}"' if page.usdz_href else ""
-    photo = (f'<figure><img class="photo" src="{esc(page.photo_href)}" alt="the photo"><figcaption>the photo'
+    ar = f' ios-src="{escape(page.usdz_href)}"' if page.usdz_href else ""
+    photo = (f'<figure><img class="photo" src="{escape(page.photo_href)}" alt="the photo"><figcaption>the photo'
              f'</figcaption></figure>') if page.photo_href else ""
-    reasons = "".join(f"<li>{esc(r)}</li>" for r in page.reasons)
-    links = f'<a href="{esc(page.glb_href)}" download>GLB</a>'
+    reasons = "".join(f"<li>{escape(r)}</li>" for r in page.reasons)
+    links = f'<a href="{escape(page.glb_href)}" download>GLB</a>'
     if page.usdz_href:
-        links += f' · <a href="{esc(page.usdz_href)}" download>USDZ</a>'
+        links += f' · <a href="{escape(page.usdz_href)}" download>USDZ</a>'
     script = f"{page.script_dir_href.rstrip('/')}/"
     model = base64.b64encode(page.web_glb).decode()
     return (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-        f"<title>{esc(page.title)}</title><style>{_PAGE_CSS}</style>"
-        f'<script src="{esc(script)}model-viewer.min.js"></script></head><body>'
+        f"<title>{escape(page.title)}</title><style>{PAGE_CSS}</style>"
+        f'<script src="{escape(script)}model-viewer.min.js"></script></head><body>'
         # The decoder's location (default: a CDN), set on the element's class before any element is made; it
         # loads the decoder by adding a script to the body, so this runs inside the body.
         "<script>if(customElements.get('model-viewer'))customElements.get('model-viewer').meshoptDecoderLocation="
-        f"'{esc(script)}meshopt_decoder.js';</script>"
-        f"<h1>{esc(page.title)}</h1>"
-        f'<p id="missing">The 3D viewer\'s script is missing ({esc(script)}model-viewer.min.js): run '
+        f"'{escape(script)}meshopt_decoder.js';</script>"
+        f"<h1>{escape(page.title)}</h1>"
+        f'<p id="missing">The 3D viewer\'s script is missing ({escape(script)}model-viewer.min.js): run '
         "<code>make web-tools</code> and then the pipeline again, or open the GLB below in any glTF viewer.</p>"
-        f'<div class="row"><model-viewer src="data:model/gltf-binary;base64,{model}"{ar} alt="{esc(page.title)}" '
+        f'<div class="row"><model-viewer src="data:model/gltf-binary;base64,{model}"{ar} alt="{escape(page.title)}" '
         'camera-controls '
         'touch-action="pan-y" ar ar-modes="webxr scene-viewer quick-look" shadow-intensity="1" '
         'interaction-prompt="none"></model-viewer>'
-        f"<div class=\"side\">{photo}<dl><dt>size (W × H × D)</dt><dd>{esc(dims)} mm</dd>"
-        f"<dt>size from</dt><dd>{esc(page.scale_source or 'unknown')}</dd>"
-        + (f"<dt>SKU</dt><dd>{esc(page.sku)}</dd>" if page.sku else "")
-        + f'<dt>QA</dt><dd><span class="verdict {esc(page.verdict)}">{esc(page.verdict)}</span></dd>'
+        f"<div class=\"side\">{photo}<dl><dt>size (W × H × D)</dt><dd>{escape(dims)} mm</dd>"
+        f"<dt>size from</dt><dd>{escape(page.scale_source or 'unknown')}</dd>"
+        + (f"<dt>SKU</dt><dd>{escape(page.sku)}</dd>" if page.sku else "")
+        + f'<dt>QA</dt><dd><span class="verdict {escape(page.verdict)}">{escape(page.verdict)}</span></dd>'
         f"<dt>files</dt><dd>{links}</dd></dl>"
         + (f"<ul>{reasons}</ul>" if reasons else "")
         + "</div></div>"
@@ -130,55 +127,3 @@ def viewer_html(page: ViewerPage) -> str:
 
 def write_viewer(path: Path, page: ViewerPage) -> Path:
     return atomic_write_text(Path(path), viewer_html(page))
-
-
-def gallery_assets(rows: Sequence[dict[str, Any]], base: Path, page_dir: Path) -> list[dict[str, Any]]:
-    """The gallery's cards from catalog rows (``ops.reporting.asset_metrics.asset_rows``): links relative to the
-    gallery's folder, paths in the rows relative to ``base`` (the store root) when not absolute."""
-    def resolved(path: str | None) -> Path | None:
-        return None if not path else Path(path) if Path(path).is_absolute() else Path(base) / path
-
-    def link(path: str | None) -> str | None:
-        p = resolved(path)
-        return None if p is None else os.path.relpath(p, page_dir)
-
-    def thumb(row: dict[str, Any]) -> str | None:
-        strip = resolved(row.get("preview_path"))  # the qa turntable strip; its animated GIF sits beside it
-        gif = strip.with_suffix(".gif") if strip is not None else None
-        return link(str(gif)) if gif is not None and gif.is_file() else link(row.get("preview_path"))
-
-    return [{"key": r["photo_key"], "verdict": r.get("verdict") or "none", "sku": r.get("sku") or "",
-             "viewer_href": link(r.get("viewer_path")) or link(r.get("glb_path")) or "#",
-             "thumb_href": thumb(r),
-             "size_mm": {d: r[f"export_{d}_mm"] for d in ("width", "height", "depth")
-                         if r.get(f"export_{d}_mm") is not None}} for r in rows]
-
-
-def gallery_html(assets: Sequence[dict[str, Any]], title: str = "Morpheus3D catalog gallery") -> str:
-    """Every asset's thumbnail (the turntable GIF) linking its viewer page; radio buttons filter by verdict (CSS
-    only). Each asset:
-    ``key``, ``verdict``, ``viewer_href``, ``thumb_href`` (or None), ``size_mm`` (or {}), ``sku``."""
-    verdicts = ("pass", "warn", "fail")
-    counts = {v: sum(a["verdict"] == v for a in assets) for v in verdicts}
-    radios = f'<input type="radio" name="f" id="f-all" checked><label for="f-all">all ({len(assets)})</label>'
-    radios += "".join(f'<input type="radio" name="f" id="f-{v}"><label for="f-{v}">{v} ({counts[v]})</label>'
-                      for v in verdicts)
-    hide = "".join(f"#f-{v}:checked~.grid .card:not(.{v}){{display:none}}" for v in verdicts)
-    cards = []
-    for a in assets:
-        size = a.get("size_mm") or {}
-        dims = " × ".join(f"{size[k]:.0f}" for k in ("width", "height", "depth") if k in size)
-        thumb = (f'<img src="{esc(a["thumb_href"])}" alt="{esc(a["key"])}" loading="lazy">' if a.get("thumb_href")
-                 else '<div class="nothumb">no preview</div>')
-        verdict = a["verdict"] if a["verdict"] in verdicts else "none"
-        cards.append(f'<a class="card {esc(verdict)}" href="{esc(a["viewer_href"])}">{thumb}'
-                     f'<span class="key">{esc(a["key"])}</span><span class="sku">{esc(a.get("sku", ""))}</span>'
-                     f'<span class="verdict {esc(verdict)}">'
-                     f'{esc(a["verdict"])}</span><span class="dims">{esc(dims + " mm" if dims else "")}</span></a>')
-    css = (_PAGE_CSS + ".grid{display:flex;flex-wrap:wrap;gap:.8em;margin-top:1em}"
-           ".card{display:flex;flex-direction:column;width:200px;border:1px solid #ddd;padding:.4em;color:inherit;"
-           "text-decoration:none}.card img{width:100%}.key{font-weight:600}.dims{color:#555;font-size:.9em}"
-           ".nothumb{height:100px;background:#eee}input{margin-left:1em}" + hide)
-    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            f"<title>{esc(title)}</title><style>{css}</style></head><body><h1>{esc(title)}</h1>"
-            f'{radios}<div class="grid">{"".join(cards)}</div></body></html>\n')
