@@ -33,7 +33,6 @@ from morpheus_core.export.web_glb import EXT_WEBP, SizeBudgetError, encode_web_g
 REPO = Path(__file__).resolve().parents[1]
 WEB_TOOLS = REPO / "tools" / "web" / "node_modules"
 MESHOPT_JS = WEB_TOOLS / "meshoptimizer" / "meshopt_decoder.mjs"
-MESHOPT_UMD = WEB_TOOLS / "meshoptimizer" / "meshopt_decoder.cjs"
 NODE = shutil.which(os.environ.get("MORPHEUS_NODE", "node"))
 
 PSNR_FLOOR_DB = 28.0

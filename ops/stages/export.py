@@ -97,8 +97,8 @@ def export_asset(bake_dir: Path, out_dir: Path, cfg: ExportStageConfig, size: Pr
         known = {"height": cfg.default_height_mm / 1000}
         source = "default"
     else:
-        known = {d.removesuffix("_mm"): (v / 1000 if v is not None else None)
-                 for d in DIMENSIONS for v in [getattr(size, d)]}
+        mm = {d.removesuffix("_mm"): getattr(size, d) for d in DIMENSIONS}
+        known = {d: v / 1000 if v is not None else None for d, v in mm.items()}
         source = size.source
     sized, fit = fit_true_size(baked, known)
     notes = []
