@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -107,8 +107,10 @@ def judge_all(by_seed: Mapping[int, Sequence[Mapping[str, Any]]], size: str,
     return [row for f in findings for m in metrics if (row := judge(f, by_seed, m, size, key)) is not None]
 
 
-def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """``path``'s list with the rows of the same (size, finding, metric) replaced by ``rows``; written atomically."""
+def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]],
+                   supersedes: Callable[[Mapping[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
+    """``path``'s list with the rows of the same (size, finding, metric), and those ``supersedes`` names (e.g.
+    the same finding judged on fewer schedules), replaced by ``rows``; written atomically."""
     kept: list[dict[str, Any]] = []
     if path.is_file():
         try:
@@ -116,7 +118,8 @@ def merge_findings(path: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[s
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{path} is not a findings list ({exc}); move it away to start a new one") from exc
     new_keys = {(r["size"], r["finding"], r["metric"]) for r in rows}
-    merged = [r for r in kept if (r.get("size"), r.get("finding"), r.get("metric")) not in new_keys] + list(rows)
+    merged = [r for r in kept if (r.get("size"), r.get("finding"), r.get("metric")) not in new_keys
+              and not (supersedes is not None and supersedes(r))] + list(rows)
     atomic_write_text(path, json.dumps(merged, indent=1, allow_nan=True) + "\n")
     return merged
 
@@ -136,9 +139,10 @@ spread); otherwise `inconclusive`. Sizes and their machines, dates and commands:
 """
 
 
-def write_findings(results: Path, rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+def write_findings(results: Path, rows: Sequence[Mapping[str, Any]],
+                   supersedes: Callable[[Mapping[str, Any]], bool] | None = None) -> list[dict[str, Any]]:
     """Merge ``rows`` into ``results/findings.json`` and rewrite ``findings.md`` from the merged list."""
-    merged = merge_findings(results / "findings.json", rows)
+    merged = merge_findings(results / "findings.json", rows, supersedes)
     atomic_write_text(results / "findings.md", FINDINGS_HEAD + findings_markdown(merged))
     return merged
 

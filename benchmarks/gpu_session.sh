@@ -22,7 +22,7 @@
 #   each call: in the VAE precision calls the second run read faster in 11 of 12 rows, whichever setting it ran
 #   (benchmarks/results/vae_precision_h200.md).
 # curve: fixed schedules under each oracle at once (ES_RUNS="stochastic:paper/40,paper/10:0,1:8 noise-free:paper/10:0:4",
-#   ES_SCENES), then the bake variants of benchmarks/bake_gap.py on the paper/10 stores (BAKE_TIMEOUT s, BAKE_NAME).
+#   ES_SCENES, ES_WORK), then the bake variants of benchmarks/bake_gap.py on the paper/10 stores (BAKE_TIMEOUT s, BAKE_NAME).
 # fast: CUDA tests of the render phases, paper_speed.py of the paper and fast presets in both orders, then a
 #   SIGKILL-and-resume check (FAST_ORDER, RESUME_SCENES; see the mode); carry outputs/gpu_refs.
 # es_ab: benchmarks/early_stop.py (ES_* as in early_stop) in this tree and in a reference tree made by reversing
@@ -70,6 +70,9 @@ if [ "$mode" = curve ]; then
   # records ${ES_NAME}_<oracle> going on from benchmarks/results/ copies; GPU memory logged every 15 s; then,
   # while BAKE_TIMEOUT lasts, the bake variants of benchmarks/bake_gap.py on the stores of the BAKE_BASE (paper/10) runs.
   export PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True
+  # ES_WORK inside the repository (an ignored path, e.g. outputs/es_curve) stays on a warm machine between calls:
+  # a second call made at once goes on from the first call's stage checkpoints (runs longer than one call).
+  work=${ES_WORK:-/tmp/es}
   (while true; do nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader >> "$out/gpu_mem.log"
      sleep 15; done) & monitor=$!
   pids=()
@@ -80,7 +83,7 @@ if [ "$mode" = curve ]; then
     [ "$jobs" -gt "$fit" ] && jobs=$fit
     name=${ES_NAME:-schedule_curve}_$oracle
     [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"
-    ES_SEEDS=$seeds ES_JOBS=$jobs early_stop_run "$name" /tmp/es "$out/early_stop_$oracle.log" \
+    ES_SEEDS=$seeds ES_JOBS=$jobs early_stop_run "$name" "$work" "$out/early_stop_$oracle.log" \
       --schedules "$schedules" --variants fixed --oracle "$oracle" & pids+=($!)
   done
   wait "${pids[@]}"
@@ -88,7 +91,7 @@ if [ "$mode" = curve ]; then
   if [ "${BAKE_TIMEOUT:-0}" != 0 ]; then
     cat "$out"/*_stochastic.records.jsonl "$out"/*_noise-free.records.jsonl 2>/dev/null \
       | grep "\"base\": \"${BAKE_BASE:-paper/10}\"" > /tmp/bake_runs.jsonl
-    timeout "$BAKE_TIMEOUT" python -m benchmarks.bake_gap --device cuda --work /tmp/es --jobs 8 \
+    timeout "$BAKE_TIMEOUT" python -m benchmarks.bake_gap --device cuda --work "$work" --jobs 8 \
       --records /tmp/bake_runs.jsonl --results "$out" --name "${BAKE_NAME:-bake_gap}" > "$out/bake_gap.log" 2>&1
     echo "bake_gap exit $?" >> "$out/bake_gap.log"
   fi

@@ -151,8 +151,11 @@ def main(argv: list[str] | None = None) -> int:
     size = (f"{' → '.join(sorted({r['base'] for r in rows}, key=_steps))}, stochastic oracle, "
             f"{machines[0].split(',')[0]}")
     judged = more_steps_finding(rows, size)
-    if judged:
-        write_findings(args.results, judged)
+    if judged:  # one "more steps pay" row per preset, oracle and machine: over the schedules run so far
+        machine = machines[0].split(",")[0]
+        write_findings(args.results, judged, lambda r: (
+            r["finding"].startswith("more steps pay") and r["size"].startswith(f"{args.preset}/")
+            and r["size"].endswith(f"stochastic oracle, {machine}")))
     flat = {o: {s: flattens(p) for s, p in c.items()} for o, c in curves.items()}
     write_results(args.results, args.name, {
         "title": "Error against schedule length", "machine": "; ".join(machines), "wall_s": 0.0,
