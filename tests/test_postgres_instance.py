@@ -4,6 +4,8 @@ results, catalog rows)."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import shutil
@@ -15,6 +17,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import dagster as dg
 import pytest
 import yaml
 
@@ -42,7 +45,7 @@ def _cli(env: dict[str, str], *args: str) -> subprocess.Popen[str]:
 
 
 @pytest.mark.timeout(900)
-def test_concurrent_backfill_kill_and_reexecute_on_postgres(tmp_path: Path) -> None:
+def test_concurrent_backfill_kill_and_reexecute_on_postgres(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     with postgres_server() as pg:
         home = tmp_path / "home"
         home.mkdir()
@@ -62,11 +65,14 @@ def test_concurrent_backfill_kill_and_reexecute_on_postgres(tmp_path: Path) -> N
 
         runs = {name: _cli(mug_env if name == "mug.jpg" else env, "materialize", name) for name in PHOTOS}
         try:
-            _kill_and_reexecute(mug_env, store, runs)
+            # The instance calls below run in this process (no start-up of their own) under mug's environment.
+            for name, value in mug_env.items():
+                monkeypatch.setenv(name, value)
+            _kill_and_reexecute(store, runs)
         finally:
             for proc in runs.values():
                 proc.kill()
-        counts = _read_back(env)
+        counts = _read_back()
     print(counts)
     runs_by_status = counts.pop("runs")
     assert runs_by_status == {"SUCCESS": 3, "FAILURE": 1}  # two runs, the killed one, its re-execution
@@ -79,7 +85,7 @@ def test_concurrent_backfill_kill_and_reexecute_on_postgres(tmp_path: Path) -> N
     assert checked and set(checked.values()) == {1}, checked
 
 
-def _kill_and_reexecute(env: dict[str, str], store: Path, runs: dict[str, subprocess.Popen[str]]) -> None:
+def _kill_and_reexecute(store: Path, runs: dict[str, subprocess.Popen[str]]) -> None:
     """Kill mug's run mid-NeRF, let the others finish, re-execute mug's run from failure."""
     ckpts = store / "mug.jpg" / ".checkpoints" / "nerf"
     deadline = time.monotonic() + 300
@@ -92,7 +98,7 @@ def _kill_and_reexecute(env: dict[str, str], store: Path, runs: dict[str, subpro
     # What the daemon does for a run whose process died: run monitoring marks it failed, and
     # free_slots_after_run_end_seconds (dagster.yaml) frees the gpu pool slot its NeRF step held,
     # for which the other runs wait.
-    _python(env, """
+    _python("""
         from dagster._core.storage.dagster_run import DagsterRunStatus, RunsFilter
         killed = [r for r in instance.get_runs(RunsFilter(tags={"dagster/partition": "mug.jpg"}))
                   if r.status == DagsterRunStatus.STARTED]
@@ -103,7 +109,7 @@ def _kill_and_reexecute(env: dict[str, str], store: Path, runs: dict[str, subpro
     for name in ("box.jpg", "bottle.jpg"):
         out, _ = runs[name].communicate(timeout=500)
         assert runs[name].returncode == 0, out[-3000:]
-    _python(env, """
+    _python("""
         from dagster._core.storage.dagster_run import DagsterRunStatus, RunsFilter
         from tests.orchestration_helpers import job_from_env
         (failed,) = instance.get_runs(RunsFilter(tags={"dagster/partition": "mug.jpg"},
@@ -116,18 +122,22 @@ def _kill_and_reexecute(env: dict[str, str], store: Path, runs: dict[str, subpro
     """)
 
 
-def _python(env: dict[str, str], body: str) -> str:
-    """``body`` in a fresh process with ``instance`` (the Postgres-backed instance) open; its stdout."""
-    code = "import dagster as dg\nwith dg.DagsterInstance.get() as instance:\n" + textwrap.indent(
-        textwrap.dedent(body), "    ")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
+def _python(body: str) -> str:
+    """``body`` run here with ``instance`` (the Postgres-backed instance of ``DAGSTER_HOME``) open; its stdout.
+    In this process, not a fresh one: the instance holds everything the runs left, and a re-execution from
+    failure loads its job by name (``dg.reconstructable``) wherever it runs."""
+    from dagster._core.storage.defs_state.base import set_defs_state_storage
+
+    out = io.StringIO()
+    with dg.DagsterInstance.get() as instance, set_defs_state_storage(instance.defs_state_storage), \
+            contextlib.redirect_stdout(out):
+        exec(textwrap.dedent(body), {"dg": dg, "instance": instance})
+    return out.getvalue()
 
 
-def _read_back(env: dict[str, str]) -> dict:
-    """What the instance and the catalog hold afterwards, read in a fresh process."""
-    out = _python(env, """
+def _read_back() -> dict:
+    """What the instance and the catalog hold afterwards, read back from the instance's database."""
+    out = _python("""
         import json, os
         from collections import Counter
         from dagster import DagsterEventType, EventRecordsFilter
