@@ -9,7 +9,7 @@ step's noise, growing with t and spatially correlated, a colour drift that chang
 for the 2D role, a CFG that extrapolates from an unconditional branch, and a VSD counterpart that
 shares part of the error. ``noise-free`` (the oracle before, a deterministic pull) stays for
 regression tests and comparisons. Every stage of the real pipeline runs unchanged; only the suite of
-priors is swapped in through ``run_photo(suites=…)``.
+priors is swapped in through ``Pipeline(suites=…)``.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def oracle_suite(scene: Scene, roles: tuple[str, ...], vsd_roles: tuple[str, ...
 
 def oracle_suites(scene: Scene, pipeline: PipelineConfig, device: torch.device,
                   cfg: OracleConfig | None = None) -> dict[str, Callable[[], PriorSuite]]:
-    """One suite factory per optimising stage, with that stage's roles (for ``run_photo``)."""
+    """One suite factory per optimising stage, with that stage's roles (``Pipeline(suites=…)``)."""
     cfg = cfg or OracleConfig()
     stage_cfgs = {"nerf": pipeline.nerf, "dmtet": pipeline.dmtet, "texture": pipeline.texture}
     return {stage: partial(oracle_suite, scene, c.guidance.roles, c.guidance.vsd_roles, device, cfg)

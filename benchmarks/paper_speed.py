@@ -47,11 +47,11 @@ from morpheus_core.priors.runtime import PriorRuntime
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop
-from ops.engine.pipeline import run_photo
 from ops.engine.priors import RealSuite
 from ops.engine.render_phases import RenderSchedule
 from ops.engine.stage_job import StageJob
 from ops.engine.target import read_rgba
+from ops.pipeline.runner import Pipeline
 from ops.stages.dmtet import start_dmtet
 from ops.stages.nerf import start_nerf
 from ops.stages.texture import start_texture
@@ -69,7 +69,7 @@ def prepare_references(store_root: Path, cfg: PipelineConfig) -> list[Path]:
     store = Store(store_root)
     dirs = []
     for photo in sorted(PHOTOS.glob("*.jpg")):
-        out = run_photo(photo, store, cfg, "paper", photo.name, until="reference")
+        out = Pipeline(store, cfg, "paper").run([(photo, photo.name)], ["reference"])[0]
         if out.error:
             raise RuntimeError(out.error)
         dirs.append(store.stage_dir(photo.name, "reference"))

@@ -14,9 +14,10 @@ from assets_store.store import Store
 from benchmarks.oracle import OracleConfig, oracle_suites
 from benchmarks.scenes import FRAME_FILL, Scene
 from ops.config.presets import PipelineConfig, preset, with_steps
-from ops.config.tree import apply_overrides
 from ops.engine.artifacts import RUNLOG_FILE
-from ops.engine.pipeline import PhotoOutcome, run_photo
+from ops.engine.config_tree import apply_overrides
+from ops.pipeline.photo_run import PhotoOutcome
+from ops.pipeline.runner import Pipeline, stages_until
 
 log = logging.getLogger("morpheus3d.bench")
 
@@ -55,10 +56,10 @@ def photo_path(scene: Scene, folder: Path, fill: float = FRAME_FILL) -> Path:
 
 def run_scene(scene: Scene, photo: Path, store: Store, cfg: PipelineConfig, label: str, key: str,
               until: str, oracle: OracleConfig | None = None) -> PhotoOutcome:
-    """``run_photo`` with the oracle priors; stages already in the store are reused."""
+    """The pipeline with the oracle priors up to ``until``; stages already in the store are reused."""
     device = torch.device("cuda" if cfg.device in ("auto", "cuda") and torch.cuda.is_available() else "cpu")
     suites = oracle_suites(scene, cfg, device, oracle)
-    out = run_photo(photo, store, cfg, label, key, suites=suites, until=until)
+    out = Pipeline(store, cfg, label, suites=suites).run([(photo, key)], stages_until(until))[0]
     if out.error:
         log.warning("%s (%s): %s", key, label, out.error)
     return out

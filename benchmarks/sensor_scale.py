@@ -48,10 +48,11 @@ from assets_store.manifest import MANIFEST_FILE, Manifest
 from assets_store.photo_hashes import CACHE_FILE
 from assets_store.store import Store
 from ops.config.presets import preset
-from ops.engine.pipeline import output_digest, photo_status
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.store_layout import LAYOUT_FILE, open_store
 from ops.intake import photo_folder
+from ops.pipeline.photo_run import output_digest
+from ops.pipeline.runner import Pipeline
+from ops.stages import STAGE_IDS
 from orchestration.definitions import build_definitions
 from orchestration.partitions import PHOTOS
 from orchestration.settings import OrchestrationSettings
@@ -72,9 +73,9 @@ def _name(i: int, suffix: str) -> str:
 def source_photo(store_root: Path, photos: Path, preset_name: str, wanted: str | None) -> tuple[str, Path]:
     """A finished photo of the store (key, photo file), checked up to date by the real status check."""
     names = {k: photos / v for v, k in assign_keys(p.name for p in photos.iterdir() if p.is_file()).items()}
-    store, cfg = open_store(store_root), preset(preset_name)
-    for key in [wanted] if wanted else store.keys():
-        if key in names and set(photo_status(names[key], store, cfg, key).values()) == {"fresh"}:
+    pipeline = Pipeline(open_store(store_root), preset(preset_name))
+    for key in [wanted] if wanted else pipeline.store.keys():
+        if key in names and set(pipeline.status(names[key], key).values()) == {"fresh"}:
             return key, names[key]
     raise SystemExit(f"{store_root} has no finished, up-to-date photo of {photos} for preset {preset_name!r}"
                      f"{f' (asked for {wanted})' if wanted else ''}: run `make demo` first")

@@ -34,10 +34,10 @@ from morpheus_core.texture import TextureField
 from ops.config.presets import preset
 from ops.engine.artifacts import save_module
 from ops.engine.loop import LoopConfig, run_loop
-from ops.engine.pipeline import run_photo
 from ops.engine.priors import build_suite
 from ops.engine.target import ReferenceTarget
 from ops.intake.plan import read_plan
+from ops.pipeline.runner import Pipeline
 from ops.stages.dmtet import DMTetTask, choose_grid, init_from_nerf
 from ops.stages.nerf import NERF_FILE, NerfTask
 from ops.stages.texture import TextureTask
@@ -110,7 +110,7 @@ def measure(preset_name: str, device: str, steps: int, warmup: int, photo: Path,
     dev = torch.device(device)
     key = photo.name
     store = Store(store_root)
-    outcome = run_photo(photo, store, cfg, preset_name, key, until="reference")
+    outcome = Pipeline(store, cfg, preset_name).run([(photo, key)], ["reference"])[0]
     if outcome.error:
         raise RuntimeError(outcome.error)
     ref_dir = store.stage_dir(key, "reference")

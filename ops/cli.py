@@ -16,7 +16,8 @@ from pathlib import Path
 
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry, rembg_model_file
 from ops.config.preset_names import PRESET_NAMES
-from ops.engine.stage_ids import STAGE_IDS, current_stage_id
+from ops.migrations import current_stage_id
+from ops.stages import STAGE_IDS
 
 PACKAGES = (
     "torch", "numpy", "diffusers", "transformers", "peft", "safetensors", "dagster", "dagster-webserver",
@@ -143,7 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override any setting, e.g. --set nerf.loop.steps=300 --set texture.guidance.k2d=0")
     run.add_argument("--device", help="cpu, cuda, cuda:1 … (default: auto)")
-    run.add_argument("--until", default="qa", type=current_stage_id, choices=STAGE_IDS, help="stop after this stage")
+    run.add_argument("--until", default=STAGE_IDS[-1], type=current_stage_id, choices=STAGE_IDS,
+                     help="stop after this stage")
     run.add_argument("--batch", type=int, default=1, metavar="N",
                      help="optimise N photos together: they share each prior forward, outputs as one by one. "
                           "On a GPU, 4-8 photos per batch (higher throughput); on a CPU keep 1 (default). A killed "
@@ -226,12 +228,11 @@ def run_command(args: argparse.Namespace) -> int:
 
     from assets_store.keys import assign_keys
     from ops.config.presets import preset
-    from ops.config.tree import ConfigError, describe_keys, to_dict
-    from ops.engine.pipeline import run_photo
-    from ops.engine.pipeline_batch import run_batch
+    from ops.engine.config_tree import ConfigError, describe_keys, to_dict
     from ops.engine.store_layout import open_store
     from ops.intake.photo_folder import list_photos
     from ops.intake.products import ProductsFileError, products_for
+    from ops.pipeline.runner import Pipeline, stages_until
     from ops.reporting.catalog_rows import record_outcomes
     from ops.reporting.progress import ConsoleProgress
     from ops.reporting.run_table import format_run_table
@@ -277,19 +278,14 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"morpheus3d run: {exc}", file=sys.stderr)
     keys = assign_keys(p.name for p in photos)
     store = open_store(args.out)
-    progress = ConsoleProgress()
+    pipeline = Pipeline(store, cfg, args.preset, args.init_mesh, ConsoleProgress())
     outcomes = []
-    if args.batch == 1:
-        for i, photo in enumerate(photos, 1):
-            print(f"[{i}/{len(photos)}] {photo.name} -> {store.photo_dir(keys[photo.name])}", file=sys.stderr)
-            outcomes.append(run_photo(photo, store, cfg, args.preset, keys[photo.name], args.init_mesh, progress,
-                                      until=args.until))
-    else:
-        groups = [photos[i:i + args.batch] for i in range(0, len(photos), args.batch)]
-        for i, group in enumerate(groups, 1):
-            print(f"[group {i}/{len(groups)}] {', '.join(p.name for p in group)} -> {store.root}", file=sys.stderr)
-            outcomes += run_batch([(p, keys[p.name]) for p in group], store, cfg, args.preset, args.init_mesh,
-                                  progress, until=args.until)
+    groups = [photos[i:i + args.batch] for i in range(0, len(photos), args.batch)]
+    for i, group in enumerate(groups, 1):
+        what = f"[{i}/{len(groups)}]" if args.batch == 1 else f"[group {i}/{len(groups)}]"
+        where = store.photo_dir(keys[group[0].name]) if args.batch == 1 else store.root
+        print(f"{what} {', '.join(p.name for p in group)} -> {where}", file=sys.stderr)
+        outcomes += pipeline.run([(p, keys[p.name]) for p in group], stages_until(args.until))
     record_outcomes(store, outcomes)
     print(format_run_table(outcomes, store))
     print(f"catalog: {store.catalog_dir} (`morpheus3d report --store {store.root} --out report.html`)")
@@ -303,8 +299,8 @@ def prepare(args: argparse.Namespace) -> int:
     from ops.intake.photo_folder import list_photos
     from ops.intake.plan import PlanConfig
     from ops.intake.prepare import PrepareConfig
-    from ops.intake.prepare_batch import failed_photos, format_table, prepare_many, print_progress
     from ops.intake.segment import SegmentConfig
+    from ops.pipeline.prepare_batch import failed_photos, format_table, prepare_many, print_progress
 
     try:
         cfg = PrepareConfig(
@@ -327,8 +323,8 @@ def prepare(args: argparse.Namespace) -> int:
         print(f"preparing {len(photos)} photos from {args.photo} into {out}/<photo>/", file=sys.stderr)
         outcomes = prepare_many(photos, out, cfg, plan_cfg, args.force, print_progress)
     elif args.photo.exists():
-        from ops.intake.prepare_batch import prepare_one
         from ops.intake.segment import Segmenter
+        from ops.pipeline.prepare_batch import prepare_one
 
         outcomes = [prepare_one(args.photo, args.out, cfg, plan_cfg, Segmenter(cfg.segment), args.force)]
     else:

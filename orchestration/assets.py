@@ -1,11 +1,11 @@
-"""The photo source asset and the seven per-photo stage assets: thin wrappers over ``ops.engine.pipeline``.
+"""The photo source asset and one asset per declared stage: thin wrappers over ``ops.pipeline.runner.Pipeline``.
 
-Each stage asset runs ``ops.engine.pipeline.run_stage`` for every photo partition of its step, then
+Each stage asset runs its stage (``Pipeline.run(photos, [stage])``) for every photo partition of its step, then
 reports the store's manifest as metadata and the stage's QA checks (declared on its ``Stage``, gathered in
 ``ops.stages.CHECKS``) as asset check results. A step covering several photos (a backfill batch) keeps going
 past a failing photo, records what finished, then fails naming the photos that did not, so a retry redoes only
 those (finished ones are cached; interrupted ones resume from their checkpoints). In such a step
-the GPU stages optimise their photos together (``ops.engine.pipeline.run_stage_batch``: one prior
+the GPU stages optimise their photos together (one ``Pipeline.run`` for the step's photos: one prior
 forward per step for all of them) unless ``MORPHEUS_BATCH_TOGETHER=0``.
 """
 
@@ -20,14 +20,14 @@ from dagster import AssetExecutionContext
 from assets_store.keys import UnsafeKeyError
 from assets_store.photo_hashes import PhotoHashes
 from morpheus_core.priors.proxy.shape import EmptySilhouetteError
-from ops.config.tree import ConfigError
 from ops.engine.checks import ERROR, QACheck, read_report
-from ops.engine.pipeline import MissingUpstreamError, StageOutcome, output_digest
+from ops.engine.config_tree import ConfigError
 from ops.engine.progress import HEARTBEAT_S, ProgressEvent
 from ops.engine.stage import Stage
 from ops.intake.errors import PreparationError
+from ops.pipeline.photo_run import MissingUpstreamError, StageOutcome, output_digest
 from ops.reporting.progress import format_event
-from ops.stages import CHECKS, STAGES, stage_checks
+from ops.stages import BY_ID, CHECKS, STAGE_IDS, STAGES, stage_checks
 from orchestration.metadata import check_metadata, stage_metadata
 from orchestration.partitions import PHOTOS, photos
 from orchestration.resources import MorpheusResource, UnknownPhotoError
@@ -44,6 +44,8 @@ PERMANENT = (PreparationError, ConfigError, MissingUpstreamError, UnknownPhotoEr
 
 # What a stage with no upstream stage reads: the photo source asset.
 PHOTO_SOURCE = "photo_files"
+# A photo's catalog row is appended once its last stage is done.
+LAST_STAGE = STAGE_IDS[-1]
 
 
 def _severity(check: QACheck) -> dg.AssetCheckSeverity:
@@ -51,9 +53,9 @@ def _severity(check: QACheck) -> dg.AssetCheckSeverity:
 
 
 def _checks(outcome: StageOutcome, morpheus: MorpheusResource, key: str) -> list[QACheck]:
-    if outcome.stage == "qa":
-        report = read_report(morpheus.store().stage_dir(key, "qa"))
-        return [QACheck(**c) for c in report.checks["qa"]]
+    if BY_ID[outcome.stage].judge is None:  # a stage that judges its own output writes a QA report
+        report = read_report(morpheus.store().stage_dir(key, outcome.stage))
+        return [QACheck(**c) for c in report.checks[outcome.stage]]
     assert outcome.manifest is not None
     return stage_checks(outcome.stage, outcome.manifest.metrics, morpheus.pipeline_config().qa)
 
@@ -121,7 +123,7 @@ def _make_stage_asset(spec: Stage, settings: OrchestrationSettings) -> dg.Assets
         keys = list(context.partition_keys)
         if len(keys) == 1:
             outcome = _run_one(context, morpheus, spec.id, keys[0], settings.max_retries)
-            if spec.id == "qa":
+            if spec.id == LAST_STAGE:
                 morpheus.record(keys[0], context.run.run_id, {spec.id: outcome.status})
             checks = _checks(outcome, morpheus, keys[0])
             assert outcome.manifest is not None
@@ -169,7 +171,7 @@ def _batch(context: AssetExecutionContext, morpheus: MorpheusResource, spec: Sta
             if isinstance(outcome, Exception):
                 raise _failure(context, morpheus, spec.id, key, outcome, max_retries)
             done[key] = (outcome, _checks(outcome, morpheus, key))
-            if spec.id == "qa":
+            if spec.id == LAST_STAGE:
                 morpheus.record(key, context.run.run_id, {spec.id: outcome.status})
         except Exception as exc:  # recorded per photo; the step fails below
             failed[key] = f"{type(exc).__name__}: {exc}"

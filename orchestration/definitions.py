@@ -12,7 +12,7 @@ import warnings
 
 import dagster as dg
 
-from ops.engine.stage_ids import STAGE_IDS
+from ops.stages import STAGE_IDS
 from orchestration.assets import build_assets
 from orchestration.resources import MorpheusResource
 from orchestration.schedules import build_nightly_schedule

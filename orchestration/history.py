@@ -15,8 +15,8 @@ import dagster as dg
 from dagster._core.definitions.data_version import DATA_VERSION_TAG
 
 from assets_store.store import Store
-from ops.engine.pipeline import StageOutcome, output_digest
 from ops.migrations import RENAMED_ASSETS
+from ops.pipeline.photo_run import StageOutcome, output_digest
 from orchestration.metadata import stage_metadata
 
 

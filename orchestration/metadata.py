@@ -12,7 +12,7 @@ from dagster import MetadataValue
 
 from assets_store.manifest import Manifest
 from ops.engine.checks import QACheck
-from ops.engine.pipeline import StageOutcome
+from ops.pipeline.photo_run import StageOutcome
 from ops.stages import BY_ID
 
 MAX_PREVIEW_BYTES = 400_000  # the UI stores metadata in the event log: keep it small

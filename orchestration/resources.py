@@ -12,11 +12,11 @@ from assets_store.catalog import Catalog
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import Store
 from ops.config.presets import PipelineConfig, preset
-from ops.engine.pipeline import StageOutcome, photo_status, run_stage
-from ops.engine.pipeline_batch import run_stage_batch
 from ops.engine.progress import ProgressFn
 from ops.engine.store_layout import open_store
 from ops.intake import photo_folder
+from ops.pipeline.photo_run import StageOutcome
+from ops.pipeline.runner import Pipeline
 from ops.reporting.catalog_rows import photo_row
 
 
@@ -37,6 +37,9 @@ class MorpheusResource(ConfigurableResource):
     def store(self) -> Store:
         return open_store(self.store_root)
 
+    def pipeline(self, progress: ProgressFn | None = None) -> Pipeline:
+        return Pipeline(self.store(), self.pipeline_config(), self.preset, progress=progress)
+
     def photos(self) -> dict[str, str]:
         """Photo key → file name in the watched folder."""
         return photo_folder.scan(Path(self.photo_dir))
@@ -49,13 +52,17 @@ class MorpheusResource(ConfigurableResource):
         return Path(self.photo_dir) / names[key]
 
     def run_stage(self, key: str, stage: str, progress: ProgressFn | None = None) -> StageOutcome:
-        return run_stage(self.photo_path(key), self.store(), self.pipeline_config(), self.preset, key, stage,
-                         progress=progress)
+        """``stage`` for one photo, reading its inputs from the store; raises what stopped it (so the
+        orchestrator can retry: finished outputs and checkpoints stay in place)."""
+        outcome = self.pipeline(progress).run([(self.photo_path(key), key)], [stage])[0]
+        if outcome.exception is not None:
+            raise outcome.exception
+        return outcome.stages[-1]
 
     def run_stage_batch(self, keys: list[str], stage: str,
                         progress: ProgressFn | None = None) -> dict[str, StageOutcome | Exception]:
-        """``stage`` for several photos together (``ops.engine.pipeline.run_stage_batch``); per key its outcome
-        or the exception that stopped it (``UnknownPhotoError`` for a photo gone from the folder)."""
+        """``stage`` for several photos together (``Pipeline.run``: one batch for those that optimise); per key
+        its outcome or the exception that stopped it (``UnknownPhotoError`` for a photo gone from the folder)."""
         names = self.photos()
         out: dict[str, StageOutcome | Exception] = {}
         present = []
@@ -64,8 +71,8 @@ class MorpheusResource(ConfigurableResource):
                 present.append((self.photo_path(key, names), key))
             except UnknownPhotoError as exc:
                 out[key] = exc
-        if present:
-            out.update(run_stage_batch(present, self.store(), self.pipeline_config(), self.preset, stage, progress))
+        for outcome in self.pipeline(progress).run(present, [stage]) if present else ():
+            out[outcome.key] = outcome.exception if outcome.exception is not None else outcome.stages[-1]
         return {key: out[key] for key in keys}
 
     def record(self, key: str, run_id: str, statuses: dict[str, str], failure: str | None = None) -> None:
@@ -76,9 +83,9 @@ class MorpheusResource(ConfigurableResource):
     def status(self, keys: list[str]) -> dict[str, dict[str, str]]:
         """Stage status (fresh / stale / missing) per key whose photo is present; photos are hashed
         only when they changed since the last look."""
-        names, store, cfg = self.photos(), self.store(), self.pipeline_config()
+        names, pipeline = self.photos(), self.pipeline()
         hashes, memo = PhotoHashes(self.store_root), {}
-        out = {k: photo_status(Path(self.photo_dir) / names[k], store, cfg, k, hashes=hashes, memo=memo)
+        out = {k: pipeline.status(Path(self.photo_dir) / names[k], k, hashes=hashes, memo=memo)
                for k in keys if k in names}
         hashes.save()
         return out

@@ -1,7 +1,7 @@
 """The nightly catch-up: runs only for photos whose stages are missing or stale, never the catalog.
 
 A photo is stale when what its stages were made from differs from now (the photo's content, the
-configuration, the code version — the store's fingerprints, ``ops.engine.pipeline.PhotoRun.status``) and
+configuration, the code version — the store's fingerprints, ``ops.pipeline.photo_run.PhotoRun.status``) and
 missing when a stage has no output. ``build_schedule_from_partitioned_job`` rejects dynamic
 partitions, so this is a plain ``@schedule`` returning one run request per such photo.
 """

@@ -7,7 +7,7 @@ import datetime as dt
 import random
 from typing import Any
 
-from ops.engine.stage_ids import STAGE_IDS
+from ops.stages import STAGE_IDS
 
 STAGES = STAGE_IDS
 LOGGED_STAGES = ("nerf", "dmtet", "texture")  # the stages with an optimisation loop and a run log

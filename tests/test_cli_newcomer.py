@@ -10,8 +10,8 @@ from assets_store.manifest import Fingerprint, Manifest
 from assets_store.store import Store
 from ops.cli import main
 from ops.config.presets import preset
-from ops.config.tree import describe_keys
-from ops.engine.pipeline import PhotoOutcome, StageOutcome
+from ops.engine.config_tree import describe_keys
+from ops.pipeline.photo_run import PhotoOutcome, StageOutcome
 from ops.reporting.run_table import format_run_table, qa_verdict
 from orchestration.cli import main as dagster_main
 

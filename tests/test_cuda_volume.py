@@ -73,18 +73,17 @@ def test_the_nerf_stage_graphs_its_field_alone_and_not_in_a_batch(tmp_path) -> N
     """``sample_buffer=auto`` on CUDA: a photo optimised alone gets graphed buffers (its manifest
     counts their resizes), photos in a batch the exact gather."""
     from assets_store.store import Store
-    from ops.engine.pipeline import run_photo
-    from ops.engine.pipeline_batch import run_batch
+    from ops.pipeline.runner import Pipeline, stages_until
     from tests.pipeline_helpers import PHOTOS, manifest, tiny_config
 
     cfg = tiny_config("device=cuda", "nerf.occupancy.update_every=3", nerf=8)
     before = GraphedCall.captures
     alone = Store(tmp_path / "alone")
-    assert run_photo(PHOTOS / "mug.jpg", alone, cfg, "tiny", "mug.jpg", until="nerf").error is None
+    assert Pipeline(alone, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug.jpg")], stages_until("nerf"))[0].error is None
     assert "sample_buffer_resizes" in manifest(alone, "mug.jpg", "nerf").metrics
     assert GraphedCall.captures > before
     batched = Store(tmp_path / "batched")
     photos = [(PHOTOS / name, name) for name in ("mug.jpg", "bottle.jpg")]
-    outcomes = run_batch(photos, batched, cfg, "tiny", until="nerf")
+    outcomes = Pipeline(batched, cfg, "tiny").run(photos, stages_until("nerf"))
     assert all(o.error is None for o in outcomes)
     assert all("sample_buffer_resizes" not in manifest(batched, key, "nerf").metrics for _, key in photos)

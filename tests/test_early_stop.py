@@ -13,13 +13,12 @@ import torch
 
 from assets_store.hashing import config_hash
 from assets_store.store import Store
-from ops.config.tree import to_dict
 from ops.engine.batch import BatchTask
+from ops.engine.config_tree import to_dict
 from ops.engine.early_stop import EARLY_STOP_FIELDS, converged, whole_schedule_record
 from ops.engine.guided_task import RenderedStep
 from ops.engine.loop import LoopConfig, run_loop
-from ops.engine.pipeline import photo_status, run_photo
-from ops.engine.pipeline_batch import run_batch
+from ops.pipeline.runner import Pipeline, stages_until
 from ops.reporting.run_table import steps_run
 from tests.pipeline_helpers import PHOTOS, manifest, tiny_config
 from tests.test_optimise import Regression
@@ -174,7 +173,7 @@ def _forced(stages: tuple[str, ...], *extra: str) -> Any:
 def test_stages_stop_early_record_it_and_stay_fresh_only_for_their_settings(tmp_path: Path) -> None:
     store, photo = Store(tmp_path / "store"), PHOTOS / "mug.jpg"
     cfg = _forced(("nerf", "dmtet"), HOLD_LEVELS)
-    outcome = run_photo(photo, store, cfg, "tiny", "mug", until="dmtet")
+    outcome = Pipeline(store, cfg, "tiny").run([(photo, "mug")], stages_until("dmtet"))[0]
     assert outcome.error is None, outcome.error
     nerf, dmtet = manifest(store, "mug", "nerf"), manifest(store, "mug", "dmtet")
     # The NeRF stage may not stop while its finer hash-grid levels are still switching on.
@@ -185,12 +184,12 @@ def test_stages_stop_early_record_it_and_stay_fresh_only_for_their_settings(tmp_
     planned = cfg.nerf.loop.steps + cfg.dmtet.loop.steps
     saved = dmtet.metrics["steps_saved"]
     assert steps_run(outcome) == f"{planned - saved}/{planned} (-{saved / planned:.0%})"
-    assert photo_status(photo, store, cfg, "mug")["dmtet"] == "fresh"
+    assert Pipeline(store, cfg).status(photo, "mug")["dmtet"] == "fresh"
     fixed = _forced(("nerf",), "dmtet.loop.early_stop=false", HOLD_LEVELS)
-    status = photo_status(photo, store, fixed, "mug")
+    status = Pipeline(store, fixed).status(photo, "mug")
     assert status["nerf"] == "fresh" and status["dmtet"] == "stale"  # it stopped under the settings it no longer has
     nerf_off = tiny_config("nerf.loop.early_stop=false", HOLD_LEVELS)
-    assert photo_status(photo, store, nerf_off, "mug")["nerf"] == "fresh"  # the whole schedule satisfies any setting
+    assert Pipeline(store, nerf_off).status(photo, "mug")["nerf"] == "fresh"  # the whole schedule satisfies any setting
 
 
 def test_the_nerf_stage_stops_only_once_every_level_is_on(tmp_path: Path) -> None:
@@ -198,7 +197,8 @@ def test_the_nerf_stage_stops_only_once_every_level_is_on(tmp_path: Path) -> Non
     grid = cfg.nerf.model.grid
     all_on = next(s for s in range(cfg.nerf.loop.steps) if grid.levels_at(s) == grid.n_levels)
     assert 0 < all_on < cfg.nerf.loop.steps - 1  # the shortened schedule switches every level on
-    outcome = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", "mug", until="nerf")
+    pipeline = Pipeline(Store(tmp_path / "store"), cfg, "tiny")
+    outcome = pipeline.run([(PHOTOS / "mug.jpg", "mug")], stages_until("nerf"))[0]
     assert outcome.error is None, outcome.error
     nerf = manifest(Store(tmp_path / "store"), "mug", "nerf")
     assert nerf.metrics["stopped_early"] is True and all_on <= nerf.metrics["steps_run"] < cfg.nerf.loop.steps
@@ -207,7 +207,7 @@ def test_the_nerf_stage_stops_only_once_every_level_is_on(tmp_path: Path) -> Non
 def test_a_batch_records_each_object_s_stop(tmp_path: Path) -> None:
     store, cfg = Store(tmp_path / "store"), _forced(("dmtet",))
     photos = [(PHOTOS / "mug.jpg", "mug"), (PHOTOS / "box.jpg", "box")]
-    outcomes = run_batch(photos, store, cfg, "tiny", until="dmtet")
+    outcomes = Pipeline(store, cfg, "tiny").run(photos, stages_until("dmtet"))
     assert all(o.error is None for o in outcomes), [o.error for o in outcomes]
     for _, key in photos:
         m = manifest(store, key, "dmtet")

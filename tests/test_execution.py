@@ -13,11 +13,11 @@ from assets_store.manifest import Fingerprint
 from morpheus_core.execution import ExecutionConfig, apply_execution, current_execution, executing
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
-from ops.config.tree import ConfigError
-from ops.engine.pipeline import run_setup, stage_config_record
-from ops.engine.stage_ids import STAGE_IDS
+from ops.engine.config_tree import ConfigError
 from ops.intake.plan import StagePlan
-from ops.stages import STAGES
+from ops.pipeline.photo_run import stage_config_record
+from ops.pipeline.runner import run_setup
+from ops.stages import STAGE_IDS, STAGES
 from tests.pipeline_helpers import PHOTOS
 
 

@@ -105,7 +105,7 @@ def test_the_nerf_anneal_follows_the_steps_unless_set() -> None:
 def test_every_render_setting_reaches_the_nerf_renderer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import ops.stages.nerf as nerf_stage
     from assets_store.store import Store
-    from ops.engine.pipeline import run_photo
+    from ops.pipeline.runner import Pipeline, stages_until
     from tests.pipeline_helpers import PHOTOS, tiny_config
 
     sets = ["nerf.render.n_samples=13", "nerf.render.max_density=777.0", "nerf.render.chunk_points=4099",
@@ -119,7 +119,7 @@ def test_every_render_setting_reaches_the_nerf_renderer(tmp_path: Path, monkeypa
         return real(field, cameras, h, w, config, *args, **kwargs)
 
     monkeypatch.setattr(nerf_stage, "render_volume", spy)
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", "mug", until="nerf")
+    out = Pipeline(Store(tmp_path / "store"), cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug")], stages_until("nerf"))[0]
     assert out.error is None, out.error
     assert seen
     for config in seen:  # every field as configured, except what a render is for (training or eval)

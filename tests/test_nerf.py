@@ -52,14 +52,14 @@ def test_the_nerf_stage_on_padded_sample_buffers_logs_drops_and_matches_the_exac
     the samples a full buffer dropped, and with none dropped it learns what the exact gather learns."""
     from assets_store.runlog import read_runlog
     from assets_store.store import Store
-    from ops.engine.pipeline import run_photo
+    from ops.pipeline.runner import Pipeline, stages_until
     from tests.pipeline_helpers import PHOTOS, tiny_config
 
     logs = {}
     for mode in ("exact", "padded"):
         cfg = tiny_config(f"nerf.render.sample_buffer={mode}", "nerf.occupancy.update_every=3", nerf=10)
         store = Store(tmp_path / mode)
-        out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", "mug.jpg", until="nerf")
+        out = Pipeline(store, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug.jpg")], stages_until("nerf"))[0]
         assert out.error is None, out.error
         logs[mode] = read_runlog(store.stage_dir("mug.jpg", "nerf") / "runlog.parquet")
     dropped = [r["samples_dropped"] for r in logs["padded"]]
@@ -71,13 +71,13 @@ def test_the_nerf_stage_on_padded_sample_buffers_logs_drops_and_matches_the_exac
 
 def test_graphed_sample_buffers_on_the_cpu_fail_at_the_stage_start_and_name_the_fix(tmp_path) -> None:
     from assets_store.store import Store
-    from ops.engine.pipeline import run_photo
+    from ops.pipeline.runner import Pipeline, stages_until
     from tests.pipeline_helpers import PHOTOS, tiny_config
 
     if tiny_config().device != "cpu":
         pytest.skip("a CPU-only failure")
     store = Store(tmp_path)
-    out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("nerf.render.sample_buffer=graphed"), "tiny", "mug.jpg",
-                    until="nerf")
+    pipeline = Pipeline(store, tiny_config("nerf.render.sample_buffer=graphed"), "tiny")
+    out = pipeline.run([(PHOTOS / "mug.jpg", "mug.jpg")], stages_until("nerf"))[0]
     assert out.error is not None and "needs a CUDA device" in out.error and "auto, exact or padded" in out.error
     assert store.read_manifest("mug.jpg", "nerf") is None  # nothing finished was written

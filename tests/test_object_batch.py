@@ -16,9 +16,8 @@ from morpheus_core.frequency import BandMask
 from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
 from ops.cli import main
 from ops.engine import batch as object_batch
-from ops.engine.pipeline import run_photo
-from ops.engine.pipeline_batch import run_batch
 from ops.engine.progress import ProgressEvent
+from ops.pipeline.runner import Pipeline, stages_until
 from ops.stages import dmtet as dmtet_stage
 from orchestration.settings import OrchestrationSettings
 from tests.helpers import PooledPrior, RandomPrior, TinyFinetunedPrior
@@ -37,7 +36,7 @@ def _photos(keys: tuple[str, ...] = KEYS) -> list[tuple[Path, str]]:
 def single(tmp_path_factory: pytest.TempPathFactory) -> Store:
     store = Store(tmp_path_factory.mktemp("single"))
     for photo, key in _photos():
-        out = run_photo(photo, store, CFG, "tiny", key, until="texture")
+        out = Pipeline(store, CFG, "tiny").run([(photo, key)], stages_until("texture"))[0]
         assert out.error is None, out.error
     return store
 
@@ -45,7 +44,7 @@ def single(tmp_path_factory: pytest.TempPathFactory) -> Store:
 @pytest.fixture(scope="module")
 def batched(tmp_path_factory: pytest.TempPathFactory) -> Store:
     store = Store(tmp_path_factory.mktemp("batched"))
-    outcomes = run_batch(_photos(), store, CFG, "tiny", until="texture")
+    outcomes = Pipeline(store, CFG, "tiny").run(_photos(), stages_until("texture"))
     assert [o.error for o in outcomes] == [None] * len(KEYS)
     assert all(s.status == "ran" for o in outcomes for s in o.stages)
     return store
@@ -138,14 +137,14 @@ def test_a_killed_batch_resumes_when_re_run_with_the_same_photos(single: Store, 
     store = Store(tmp_path / "store")
     _copy_stages(single, store, ("reference",))
     every = CFG.nerf.loop.checkpoint_every
-    killed = run_batch(_photos(), store, CFG, "tiny", until="nerf",
-                       progress=Crash(f"batch of {len(KEYS)}:nerf", every + 1))
+    crashing = Pipeline(store, CFG, "tiny", progress=Crash(f"batch of {len(KEYS)}:nerf", every + 1))
+    killed = crashing.run(_photos(), stages_until("nerf"))
     assert all("killed at step" in o.error for o in killed)
     assert all(store.read_manifest(key, "nerf") is None for key in KEYS)
     saved = store.checkpoint_dir(KEYS[0], "nerf").glob("batch-*/step-*.ckpt")
     assert max(int(p.stem.split("-")[1]) for p in saved) == every  # one checkpoint for the whole batch
 
-    again = run_batch(_photos(), store, CFG, "tiny", until="nerf")
+    again = Pipeline(store, CFG, "tiny").run(_photos(), stages_until("nerf"))
     for key, outcome in zip(KEYS, again, strict=True):
         assert outcome.error is None and outcome.stages[-1].status == "resumed"
         metrics = manifest(store, key, "nerf").metrics
@@ -176,7 +175,7 @@ def test_a_photo_without_a_surface_fails_alone_and_the_others_finish(single: Sto
 
     monkeypatch.setattr(dmtet_stage, "start_dmtet", start)
     monkeypatch.setattr(object_batch, "BatchTask", Recorded)
-    outcomes = {o.key: o for o in run_batch(_photos(), store, CFG, "tiny", until="dmtet")}
+    outcomes = {o.key: o for o in Pipeline(store, CFG, "tiny").run(_photos(), stages_until("dmtet"))}
     assert outcomes["box.jpg"].status == "failed"
     assert outcomes["box.jpg"].error.startswith("dmtet: BadStep") and "no surface" in outcomes["box.jpg"].error
     assert store.read_manifest("box.jpg", "dmtet") is None

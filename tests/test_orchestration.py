@@ -23,8 +23,7 @@ from assets_store.catalog import Catalog
 from assets_store.checkpoints import Checkpoints
 from assets_store.store import Store
 from ops.engine.checks import read_report
-from ops.engine.stage_ids import STAGE_IDS
-from ops.stages import CHECKS
+from ops.stages import CHECKS, STAGE_IDS
 from orchestration.assets import GPU_POOL
 from orchestration.definitions import JOB
 from orchestration.partitions import PHOTOS

@@ -17,10 +17,11 @@ from assets_store.store import CATALOG_DIR, Store
 from morpheus_core.priors.proxy.prior import ProxyPrior
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
-from ops.engine.pipeline import PhotoOutcome, run_photo
 from ops.engine.priors import PriorsConfig, ProxySuite, build_suite
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.store_layout import LAYOUT_FILE, LAYOUT_LOCK
+from ops.pipeline.photo_run import PhotoOutcome
+from ops.pipeline.runner import Pipeline, stages_until
+from ops.stages import STAGE_IDS
 from tests.pipeline_helpers import DEVICE, PHOTOS, manifest, output_hashes, tiny_config
 
 KEY = "mug.jpg"
@@ -37,7 +38,7 @@ def draft(*extra: str) -> PipelineConfig:
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Store, PhotoOutcome]:
     store = Store(tmp_path_factory.mktemp("store"))
-    outcome = run_photo(PHOTOS / "mug.jpg", store, draft(), "draft", KEY)
+    outcome = Pipeline(store, draft(), "draft").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert outcome.error is None, outcome.error
     return store, outcome
 
@@ -85,15 +86,15 @@ def test_manifests_record_what_people_need(finished: tuple[Store, PhotoOutcome])
 def test_second_run_is_cached_and_one_change_reruns_only_what_follows(tmp_path: Path) -> None:
     # Caching is decided by fingerprints, not by sizes: tiny schedules show it at a tenth of the draft's cost.
     src = Store(tmp_path / "first")
-    assert run_photo(PHOTOS / "mug.jpg", src, tiny_config(), "tiny", KEY).error is None
+    assert Pipeline(src, tiny_config(), "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0].error is None
     store = Store(tmp_path / "store")
     shutil.copytree(src.photo_dir(KEY), store.photo_dir(KEY))
-    again = run_photo(PHOTOS / "mug.jpg", store, tiny_config(), "tiny", KEY)
+    again = Pipeline(store, tiny_config(), "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert [s.status for s in again.stages] == ["cached"] * len(STAGE_IDS) and again.wall_s == 0.0
-    changed = run_photo(PHOTOS / "mug.jpg", store, tiny_config("texture.lr_grid=0.02"), "tiny", KEY)
+    changed = Pipeline(store, tiny_config("texture.lr_grid=0.02"), "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert [s.status for s in changed.stages] == ["cached"] * 3 + ["ran"] * (len(STAGE_IDS) - 3)
     assert output_hashes(store, KEY, "texture") != output_hashes(src, KEY, "texture")
-    back = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.laplacian_weight=20"), "tiny", KEY)
+    back = Pipeline(store, tiny_config("dmtet.laplacian_weight=20"), "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert [s.status for s in back.stages] == ["cached"] * 2 + ["ran"] * (len(STAGE_IDS) - 2)
 
 
@@ -114,7 +115,7 @@ def test_a_prior_returning_nan_is_survived_counted_and_kept_out_of_outputs(tmp_p
     cfg = tiny_config()
     ref_dir = tmp_path / "store"
     store = Store(ref_dir)
-    run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, until="reference")
+    Pipeline(store, cfg, "tiny").run([(PHOTOS / "mug.jpg", KEY)], stages_until("reference"))[0]
 
     def flaky() -> ProxySuite:
         suite = build_suite(PriorsConfig(kind="proxy", proxy_grid=24), torch.device(DEVICE),
@@ -123,7 +124,7 @@ def test_a_prior_returning_nan_is_survived_counted_and_kept_out_of_outputs(tmp_p
         suite.priors = {role: NaNOnSomeSteps(prior) for role, prior in suite.priors.items()}
         return suite
 
-    out = run_photo(PHOTOS / "mug.jpg", store, cfg, "tiny", KEY, suites={"nerf": flaky, "dmtet": flaky})
+    out = Pipeline(store, cfg, "tiny", suites={"nerf": flaky, "dmtet": flaky}).run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert out.error is None, out.error
     for stage in ("nerf", "dmtet"):
         m = manifest(store, KEY, stage).metrics
@@ -160,7 +161,7 @@ def test_real_priors_run_the_same_stage_code(tmp_path: Path, models_root: Path) 
     real = [f"priors.models_root={models_root}", "priors.kind=real", "priors.image2d_resolution=64"]
     cfg = tiny_config(*real, nerf=2, dmtet=1, texture=2)
     store = Store(tmp_path / "store")
-    out = run_photo(PHOTOS / "box.jpg", store, cfg, "tiny", "box.jpg", until="texture")
+    out = Pipeline(store, cfg, "tiny").run([(PHOTOS / "box.jpg", "box.jpg")], stages_until("texture"))[0]
     assert out.error is None, out.error
     nerf = manifest(store, "box.jpg", "nerf")
     tex = manifest(store, "box.jpg", "texture")
@@ -171,7 +172,7 @@ def test_real_priors_run_the_same_stage_code(tmp_path: Path, models_root: Path) 
 
 def test_real_priors_requested_without_weights_fail_naming_the_folder(tmp_path: Path) -> None:
     cfg = tiny_config(f"priors.models_root={tmp_path / 'empty'}", "priors.kind=real")
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), cfg, "tiny", KEY, until="nerf")
+    out = Pipeline(Store(tmp_path / "store"), cfg, "tiny").run([(PHOTOS / "mug.jpg", KEY)], stages_until("nerf"))[0]
     assert out.status == "failed" and "ModelMissingError" in out.error and "zero123" in out.error
     assert Store(tmp_path / "store").read_manifest(KEY, "nerf") is None  # nothing half-written
 
@@ -185,7 +186,8 @@ def test_running_out_of_gpu_memory_fails_the_photo_naming_what_to_lower(tmp_path
 
     monkeypatch.setattr(NerfTask, "render_step", oom)
     monkeypatch.setenv("MORPHEUS_GPU_SLOTS", "2")
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), tiny_config(), "tiny", KEY, until="nerf")
+    out = Pipeline(Store(tmp_path / "store"), tiny_config(), "tiny").run([(PHOTOS / "mug.jpg", KEY)],
+                                                                   stages_until("nerf"))[0]
     assert out.status == "failed" and out.error.startswith("nerf: OutOfMemoryError: CUDA out of memory")
     assert "MORPHEUS_GPU_SLOTS=2 runs share each GPU" in out.error and "MORPHEUS_BATCH" in out.error
     assert Store(tmp_path / "store").read_manifest(KEY, "nerf") is None  # nothing half-written
@@ -196,8 +198,8 @@ def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoO
     src, _ = finished
     asset = src.stage_dir(KEY, "bake") / "asset.glb"
     store = Store(tmp_path / "store")
-    out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("dmtet.max_grid=32", dmtet=0), "tiny", KEY,
-                    init_mesh=asset)
+    pipeline = Pipeline(store, tiny_config("dmtet.max_grid=32", dmtet=0), "tiny", init_mesh=asset)
+    out = pipeline.run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert out.error is None, out.error
     assert [s.stage for s in out.stages] == ["reference", "dmtet", "texture", "bake", "export", "qa"]
     dm = manifest(store, KEY, "dmtet")
@@ -212,7 +214,7 @@ def test_refining_an_existing_asset_skips_the_nerf(finished: tuple[Store, PhotoO
 def test_init_mesh_errors_name_the_file(tmp_path: Path) -> None:
     bad = tmp_path / "broken.glb"
     bad.write_bytes(b"not a mesh")
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path / "store"), tiny_config(), "tiny", KEY, init_mesh=bad)
+    out = Pipeline(Store(tmp_path / "store"), tiny_config(), "tiny", init_mesh=bad).run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert out.status == "failed" and out.error.startswith("dmtet: MeshLoadError") and "broken.glb" in out.error
 
 
@@ -227,8 +229,8 @@ def test_normal_smoothness_is_zero_for_flat_normals_and_enters_the_nerf_loss(tmp
     noisy = torch.nn.functional.normalize(torch.randn(2, 8, 8, 3, generator=g), dim=-1)
     assert float(normal_smoothness(noisy, opaque)) > 0.0 and float(normal_smoothness(noisy, opaque * 0)) == 0.0
     store = Store(tmp_path / "store")
-    out = run_photo(PHOTOS / "mug.jpg", store, tiny_config("nerf.normal_smooth_weight=0.05", nerf=3), "tiny", KEY,
-                    until="nerf")
+    pipeline = Pipeline(store, tiny_config("nerf.normal_smooth_weight=0.05", nerf=3), "tiny")
+    out = pipeline.run([(PHOTOS / "mug.jpg", KEY)], stages_until("nerf"))[0]
     assert out.error is None, out.error
     log = read_runlog(store.stage_dir(KEY, "nerf") / "runlog.parquet")
     assert all(r["normal_smooth"] is not None and r["normal_smooth"] > 0 for r in log)

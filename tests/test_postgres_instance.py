@@ -21,7 +21,7 @@ import dagster as dg
 import pytest
 import yaml
 
-from ops.engine.stage_ids import STAGE_IDS
+from ops.stages import STAGE_IDS
 from tests.orchestration_helpers import TINY
 from tests.pipeline_helpers import PHOTOS as EXAMPLES
 from tests.postgres_server import INSTALL_HINT, postgres_server, server_bin

@@ -148,19 +148,19 @@ def test_cli_stops_a_low_confidence_photo_with_the_fix(tmp_path: Path, capsys: p
 
 def test_a_low_confidence_photo_stops_before_the_gpu_stages(tmp_path: Path) -> None:
     from assets_store.store import Store
-    from ops.engine.pipeline import run_photo
+    from ops.pipeline.runner import Pipeline, stages_until
     from tests.pipeline_helpers import tiny_config
 
     store = Store(tmp_path / "store")
     cfg = tiny_config("reference.prepare.segment.use_rembg=false")
-    out = run_photo(REAL / "coffee.png", store, cfg, "tiny", "coffee.png")
+    out = Pipeline(store, cfg, "tiny").run([(REAL / "coffee.png", "coffee.png")])[0]
     assert out.status == "failed" and out.error.startswith("reference: LowConfidenceError")
     assert "coffee.png" in out.error
     assert [s.stage for s in out.stages] == ["reference"]
     assert all(store.read_manifest("coffee.png", s) is None for s in ("reference", "nerf"))
     # The threshold is a pipeline setting too.
     lenient = tiny_config("reference.prepare.segment.use_rembg=false", "reference.prepare.segment.min_confidence=0.0")
-    out = run_photo(REAL / "coffee.png", store, lenient, "tiny", "coffee.png", until="reference")
+    out = Pipeline(store, lenient, "tiny").run([(REAL / "coffee.png", "coffee.png")], stages_until("reference"))[0]
     ref = store.read_manifest("coffee.png", "reference")
     assert out.error is None and ref is not None and ref.metrics["mask_confidence"] < 0.15
     assert any("confidence" in n for n in ref.notes)

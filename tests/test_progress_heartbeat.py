@@ -15,9 +15,9 @@ import ops.stages.dmtet as dmtet_stage
 import ops.stages.qa as qa_stage
 from assets_store.store import Store
 from ops.engine.loop import LoopConfig, StepOutput, run_loop
-from ops.engine.pipeline import run_photo
 from ops.engine.progress import Heartbeat, ProgressEvent
 from ops.engine.stage_job import StageResult
+from ops.pipeline.runner import Pipeline, stages_until
 from ops.reporting.progress import ConsoleProgress, format_event
 from tests.pipeline_helpers import PHOTOS, tiny_config
 from tests.test_optimise import Regression
@@ -120,8 +120,8 @@ def test_the_stage_outcome_reports_its_wall_time_and_the_conversion_beats(tmp_pa
     monkeypatch.setattr(progress_module, "HEARTBEAT_S", BEAT)
     monkeypatch.setattr(dmtet_stage, "convert", slow_convert)
     events = Events()
-    out = run_photo(PHOTOS / "mug.jpg", Store(tmp_path), tiny_config(nerf=2, dmtet=1), "tiny", "mug.jpg",
-                    progress=events, until="dmtet")
+    pipeline = Pipeline(Store(tmp_path), tiny_config(nerf=2, dmtet=1), "tiny", progress=events)
+    out = pipeline.run([(PHOTOS / "mug.jpg", "mug.jpg")], stages_until("dmtet"))[0]
     assert out.error is None, out.error
     converting = [e for e in events if e.stage.startswith("mug.jpg:dmtet (converting NeRF → DMTet")]
     assert len(converting) >= 3 and converting[-1].elapsed_s >= 0.25

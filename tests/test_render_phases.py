@@ -12,10 +12,11 @@ import torch
 import ops.engine.guided_task as guided_task
 from assets_store.store import Store
 from ops.config.presets import preset, with_steps
-from ops.config.tree import ConfigError
-from ops.engine.pipeline import run_photo, stage_config_record
+from ops.engine.config_tree import ConfigError
 from ops.engine.render_phases import Phase, RenderSchedule
 from ops.engine.target import ReferenceTarget
+from ops.pipeline.photo_run import stage_config_record
+from ops.pipeline.runner import Pipeline, stages_until
 from tests.pipeline_helpers import PHOTOS, tiny_config
 from tests.seeds import fresh_seed
 
@@ -98,7 +99,7 @@ def test_every_stage_renders_its_phases_sizes_and_views(tmp_path: Any, monkeypat
         return real(config, bindings, schedule, novel, step, reference_render, reference, *args, **kwargs)
 
     monkeypatch.setattr(guided_task, "hybrid_guidance", spy)
-    outcome = run_photo(PHOTOS / "mug.jpg", Store(tmp_path), cfg, "draft", "mug.jpg", until="texture")
+    outcome = Pipeline(Store(tmp_path), cfg, "draft").run([(PHOTOS / "mug.jpg", "mug.jpg")], stages_until("texture"))[0]
     assert outcome.error is None, outcome.error
     # The stages run in order; split the record where the step counter starts again.
     runs: list[list[tuple[int, int, int]]] = [[]]

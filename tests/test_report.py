@@ -27,10 +27,10 @@ from assets_store.catalog import Catalog
 from assets_store.runlog import write_runlog
 from assets_store.store import Store
 from ops.cli import main
-from ops.engine.stage_ids import STAGE_IDS
 from ops.reporting.asset_metrics import HISTOGRAM_MIN_ASSETS
 from ops.reporting.report import SECTIONS
 from ops.reporting.report_sections import worst_order
+from ops.stages import STAGE_IDS
 from tests.browser import chromium, needs_browser
 from tests.catalog_rows import LOGGED_STAGES, synthetic_row
 from tests.report_page import totals

@@ -25,12 +25,12 @@ from assets_store.catalog import Catalog
 from assets_store.manifest import Fingerprint, Manifest
 from assets_store.store import Store
 from ops.engine.checks import QA_FILE
-from ops.engine.pipeline import PhotoOutcome, StageOutcome
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.store_layout import open_store
+from ops.pipeline.photo_run import PhotoOutcome, StageOutcome
 from ops.reporting.asset_metrics import HISTOGRAM_MIN_ASSETS
 from ops.reporting.catalog_rows import photo_row, record_outcomes
 from ops.reporting.report import build_report
+from ops.stages import STAGE_IDS
 from ops.stages.qa import QA_TURNTABLE_FILE
 from orchestration.resources import MorpheusResource
 from tests.catalog_rows import METRICS, synthetic_row

@@ -12,10 +12,9 @@ import pytest
 
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
-from ops.config.tree import ConfigError, describe_keys
-from ops.engine.stage_ids import STAGE_IDS, current_stage_id
-from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES
-from ops.stages import BY_ID, CHECKS, STAGES
+from ops.engine.config_tree import ConfigError, describe_keys
+from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES, current_stage_id
+from ops.stages import BY_ID, CHECKS, STAGE_IDS, STAGES
 from orchestration.definitions import build_definitions
 
 
@@ -75,6 +74,6 @@ def test_until_accepts_an_old_stage_name(tmp_path, capsys) -> None:
 
 def test_stage_of_unknown_id_is_refused() -> None:
     assert BY_ID["bake"].gpu is False and BY_ID["nerf"].replaced_by_init_mesh
-    from ops.engine.pipeline import check_stage_id
+    from ops.pipeline.runner import check_stage_id
     with pytest.raises(ValueError, match="must be one of"):
         check_stage_id("uv_bakes")

@@ -16,11 +16,9 @@ import pytest
 from assets_store.hashing import bytes_sha256, config_hash
 from assets_store.manifest import MANIFEST_FILE, Manifest
 from assets_store.store import CHECKPOINTS_DIR, Store
-from ops.config.tree import from_dict
+from ops.engine.config_tree import from_dict
 from ops.engine.early_stop import whole_schedule_record
-from ops.engine.pipeline import PhotoRun, run_photo
 from ops.engine.priors import PriorsConfig
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.store_layout import (
     CONFIG_CHANGES,
     LAYOUT,
@@ -30,6 +28,9 @@ from ops.engine.store_layout import (
     open_store,
 )
 from ops.migrations import RENAMED_ASSETS, RENAMED_STAGES
+from ops.pipeline.photo_run import PhotoRun
+from ops.pipeline.runner import Pipeline, stages_until
+from ops.stages import STAGE_IDS
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
 from ops.stages.nerf import NerfStageConfig
@@ -68,7 +69,7 @@ def _downgrade(store: Store) -> None:
 @pytest.fixture(scope="module")
 def current(tmp_path_factory: pytest.TempPathFactory) -> Store:
     store = open_store(tmp_path_factory.mktemp("current"))
-    outcome = run_photo(PHOTOS / "mug.jpg", store, CFG, "tiny", KEY)
+    outcome = Pipeline(store, CFG, "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert outcome.error is None, outcome.error
     return store
 
@@ -87,7 +88,7 @@ def test_a_store_from_before_is_read_cached_with_the_same_outputs(current: Store
     assert layout_of(store.root) == LAYOUT
     assert sorted(p.name for p in store.photo_dir(KEY).iterdir() if not p.name.startswith(".")) == sorted(
         STAGE_IDS)
-    again = run_photo(PHOTOS / "mug.jpg", store, CFG, "tiny", KEY)
+    again = Pipeline(store, CFG, "tiny").run([(PHOTOS / "mug.jpg", KEY)])[0]
     assert [s.status for s in again.stages] == ["cached"] * len(STAGE_IDS), again
     for stage in STAGE_IDS:
         assert output_hashes(store, KEY, stage) == output_hashes(current, KEY, stage)
@@ -124,7 +125,7 @@ def test_an_interrupted_stage_resumes_from_its_layout1_checkpoint(current: Store
     # The pipeline does the same before it starts a stage: run it from the layout-1 folder once more.
     legacy = store.checkpoint_dir(KEY, stage) / old_dir.parent.name / old_dir.name  # moved with its stage folder
     os.replace(resume_at, legacy)
-    outcome = run_photo(PHOTOS / "mug.jpg", store, CFG, "tiny", KEY, until=stage)
+    outcome = Pipeline(store, CFG, "tiny").run([(PHOTOS / "mug.jpg", KEY)], stages_until(stage))[0]
     assert [s.status for s in outcome.stages][-1] == "resumed", outcome  # (the fake step file is then skipped)
 
 

@@ -10,12 +10,12 @@
 - ``draft``: small enough for a 2-core CPU (one photo end to end in a few minutes): tiny
   renders, a small hash grid, short schedules. For previews, tests and the demo.
 
-Everything is overridable by dotted path (``ops.config.tree.apply_overrides``), e.g.
+Everything is overridable by dotted path (``ops.engine.config_tree.apply_overrides``), e.g.
 ``--set texture.guidance.k2d=0`` (the paper's Base row) or ``--set nerf.loop.steps=2000``.
 
 ``execution`` (``morpheus_core.execution.ExecutionConfig``) is how the kernels run, not what they
 compute: no stage's fingerprint holds it, and a run applies it process-wide when it starts
-(``ops.engine.pipeline.run_setup``). Its defaults come from the environment aliases
+(``ops.pipeline.runner.run_setup``). Its defaults come from the environment aliases
 (``MORPHEUS_HASHGRID``, ``MORPHEUS_FIELD_MLP``, ``MORPHEUS_COMPILE``).
 """
 
@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, make_dataclass, replace
 
 from morpheus_core.execution import ExecutionConfig
 from morpheus_core.export.uv_bake import BakeConfig
@@ -33,17 +33,16 @@ from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.texture import TextureFieldConfig
 from ops.config.preset_names import PRESET_NAMES
-from ops.config.tree import ConfigError, apply_overrides
+from ops.engine.config_tree import ConfigError, apply_overrides
 from ops.engine.loop import LoopConfig
 from ops.engine.priors import PriorsConfig
 from ops.engine.render_phases import Phase
 from ops.migrations import RENAMED_KEYS
+from ops.stages import STAGES
 from ops.stages.bake import BakeStageConfig
 from ops.stages.dmtet import DMTetStageConfig
-from ops.stages.export import ExportStageConfig
 from ops.stages.nerf import NerfStageConfig, small_field
 from ops.stages.qa import QAConfig
-from ops.stages.reference import ReferenceStageConfig
 from ops.stages.texture import TextureStageConfig
 
 log = logging.getLogger("morpheus3d")
@@ -59,22 +58,25 @@ def execution_defaults() -> ExecutionConfig:
 
 
 @dataclass(frozen=True)
-class PipelineConfig:
+class RunSettings:
+    """What every stage of a run shares; ``PipelineConfig`` adds one section per declared stage."""
+
     seed: int = 0
     """Seed of the fitting stages' random numbers (field init, novel cameras, ray jitter, diffusion noise)."""
     device: str = "auto"
     """Torch device: ``auto`` (CUDA if available, else CPU; the learned QA metrics: CPU), ``cpu``, ``cuda:1``…"""
     priors: PriorsConfig = field(default_factory=PriorsConfig)
-    reference: ReferenceStageConfig = field(default_factory=ReferenceStageConfig)
-    nerf: NerfStageConfig = field(default_factory=NerfStageConfig)
-    dmtet: DMTetStageConfig = field(default_factory=DMTetStageConfig)
-    texture: TextureStageConfig = field(default_factory=TextureStageConfig)
-    bake: BakeStageConfig = field(default_factory=BakeStageConfig)
-    export: ExportStageConfig = field(default_factory=ExportStageConfig)
-    qa: QAConfig = field(default_factory=QAConfig)
     execution: ExecutionConfig = field(default_factory=execution_defaults)
     """How the kernels run (Triton or eager, torch.compile): results differ by rounding only, so no stage's
     fingerprint holds it and changing it reuses cached outputs."""
+
+
+# The run's configuration: ``RunSettings`` and, per stage in pipeline order, a section ``<id>`` of the stage's
+# declared config class (``Stage.config``) with its defaults: a new stage needs no line here.
+PipelineConfig = make_dataclass(
+    "PipelineConfig", [(s.id, s.config, field(default_factory=s.config)) for s in STAGES],
+    bases=(RunSettings,), frozen=True)
+PipelineConfig.__module__ = __name__  # pickles and reprs name it here
 
 
 def paper() -> PipelineConfig:

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from assets_store.atomic import atomic_write
 from assets_store.runlog import write_runlog
-from ops.config.tree import from_dict, to_dict
+from ops.engine.config_tree import from_dict, to_dict
 from ops.engine.loop import LoopResult
 
 RUNLOG_FILE = "runlog.parquet"

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from ops.engine.stage_ids import current_stage_id
+from ops.migrations import current_stage_id
 
 QA_FILE = "qa.json"
 ERROR, WARN = "error", "warn"

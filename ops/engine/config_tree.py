@@ -180,13 +180,15 @@ _RST_LITERAL = re.compile(r"``([^`]+)``")
 def field_docs(cls: type) -> dict[str, str]:
     """Each field's one-line doc: the string literal right after the field in the class body (an
     attribute docstring, which IDEs show too), whitespace folded and reStructuredText literals
-    (````x````) shown as plain ``x`` on the command line (``--list-keys``)."""
+    (````x````) shown as plain ``x`` on the command line (``--list-keys``). Fields a class inherits
+    keep their base class's docs (a generated class has no source of its own)."""
+    docs = {k: v for base in reversed(cls.__mro__[1:]) if dataclasses.is_dataclass(base)
+            for k, v in field_docs(base).items()}
     try:
         source = textwrap.dedent(inspect.getsource(cls))
     except (OSError, TypeError):
-        return {}
+        return docs
     body = ast.parse(source).body[0].body  # type: ignore[attr-defined]
-    docs = {}
     for node, after in itertools.pairwise(body):
         if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
                 and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):

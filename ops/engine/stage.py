@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 
 class StageContext(Protocol):
-    """What a stage sees of one photo's run when it declares its work (``ops.engine.pipeline.PhotoRun``)."""
+    """What a stage sees of one photo's run when it declares its work (``ops.pipeline.photo_run.PhotoRun``)."""
 
     key: str
     photo: Path
@@ -96,7 +96,9 @@ class Stage(Generic[C]):
 
     ``reads``: the stages whose outputs are its inputs (those of them this photo runs);
     ``writes``: the files of its output; ``preview``: the one people look at (Dagster UI);
-    ``gpu``: it runs under a GPU lease; ``replaced_by_init_mesh``: ``--init-mesh`` skips it."""
+    ``gpu``: it optimises on the GPU (the Dagster GPU pool, batched with other photos); ``cpu_only``: it
+    never touches the torch device, so a run of it alone takes no GPU lease; ``replaced_by_init_mesh``:
+    ``--init-mesh`` skips it."""
 
     id: str
     code_version: str
@@ -107,7 +109,11 @@ class Stage(Generic[C]):
     description: str
     build: Callable[[StageContext, C], StageWork]
     """The stage's work for one photo, from the run context and the stage's own config."""
+    config: type[C]
+    """Its config class: the ``<id>`` section of the run's configuration (``--set <id>.…``), its defaults
+    the stage's own (a preset may set others)."""
     replaced_by_init_mesh: bool = False
+    cpu_only: bool = False
     checks: tuple[CheckSpec, ...] = ()
     """The QA checks of its output (the Dagster asset checks, the ``qa`` stage's report)."""
     judge: Callable[[dict[str, Any], CheckThresholds], list[QACheck]] | None = None

@@ -33,7 +33,6 @@ from assets_store.hashing import bytes_sha256, config_hash
 from assets_store.keys import is_safe_key
 from assets_store.manifest import MANIFEST_FILE, Fingerprint, Manifest
 from assets_store.store import CHECKPOINTS_DIR, Store
-from ops.engine.stage_ids import STAGE_IDS
 from ops.migrations import RENAMED_STAGES
 
 log = logging.getLogger("morpheus3d")
@@ -159,7 +158,10 @@ def migrate(store: Store) -> Migration:
                     report.checkpoints_moved += parent != photo
                 elif src.is_dir():
                     report.problems.append(f"{key}: both {src.name}/ and {dst.name}/ exist; kept {dst.name}/")
-        for stage in STAGE_IDS:
+        # Every stage folder with a manifest (this layer does not know the stage list; old names were renamed above).
+        stages = sorted(p.name for p in photo.iterdir()
+                        if (p / MANIFEST_FILE).is_file() and p.name not in RENAMED_STAGES)
+        for stage in stages:
             try:
                 if _migrate_manifest(store.stage_dir(key, stage) / MANIFEST_FILE, stage):
                     report.manifests_rewritten += 1

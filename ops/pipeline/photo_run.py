@@ -1,4 +1,4 @@
-"""One photo through every stage, with the store's caching, manifests and checkpoints.
+"""One photo's run through the stages, with the store's caching, manifests and checkpoints.
 
 For each stage the fingerprint is (the hashes of its inputs — the photo, or upstream outputs —,
 the hash of its config including which priors actually run, its code version). A stage whose
@@ -14,34 +14,32 @@ import json
 import logging
 import time
 import traceback
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field, is_dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field, is_dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from assets_store.hashing import bytes_sha256, config_hash, file_sha256
 from assets_store.manifest import Fingerprint, Manifest
-from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
-from morpheus_core.execution import executing
 from ops.config.presets import PipelineConfig
-from ops.config.tree import to_dict
 from ops.engine.checks import CheckThresholds, QACheck
+from ops.engine.config_tree import to_dict
 from ops.engine.early_stop import whole_schedule_record
-from ops.engine.gpu_lease import GpuLease, leased_device, memory_hint
-from ops.engine.priors import WEIGHT_FREE, PriorsConfig, PriorSuite
+from ops.engine.gpu_lease import memory_hint
+from ops.engine.priors import PriorsConfig, PriorSuite
 from ops.engine.progress import ProgressEvent, ProgressFn
 from ops.engine.stage import StageWork
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageResult
 from ops.engine.store_layout import adopt_layout1_checkpoint, checkpoint_path
-from ops.intake.plan import StagePlan, read_plan
+from ops.intake.plan import PLAN_FILE, StagePlan, read_plan
 from ops.migrations import ADDED_SETTINGS
 from ops.stages import BY_ID, STAGES, stage_checks
 
 log = logging.getLogger("morpheus3d")
+# The stage whose output holds the photo's plan (what the later stages are sized by).
+PLANNER = next(s.id for s in STAGES if PLAN_FILE in s.writes)
 
 @dataclass
 class StageOutcome:
@@ -59,6 +57,8 @@ class PhotoOutcome:
     key: str
     stages: list[StageOutcome] = field(default_factory=list)
     error: str | None = None
+    exception: Exception | None = None
+    """What stopped this photo: callers classify it (bad input or transient) or raise it again."""
 
     @property
     def status(self) -> str:
@@ -136,9 +136,6 @@ class PhotoRun:
         self.done: dict[str, Manifest] = {}
         self._plan: StagePlan | None = None
         self.outcome = PhotoOutcome(photo, key)
-        # The exception that stopped this photo: batch callers classify it (bad input or transient)
-        # the way a single-photo caller classifies what ``run`` raises.
-        self.error: Exception | None = None
         self.hash_photo: Callable[[Path], str] = file_sha256
         # Config hashes and prior resolution are the same for every photo with the same plan
         # decisions; a catalog-wide status check shares this between photos.
@@ -168,9 +165,9 @@ class PhotoRun:
 
     @property
     def plan(self) -> StagePlan | None:
-        """The reference stage's plan, read once (after the reference stage is done)."""
+        """The photo's plan, read once (after the stage that makes it is done)."""
         if self._plan is None:
-            self._plan = read_plan(self.dir("reference"))
+            self._plan = read_plan(self.dir(PLANNER))
         return self._plan
 
     def upstream(self, stage: str) -> Manifest:
@@ -270,7 +267,7 @@ class PhotoRun:
                resumed: bool) -> Manifest:
         """Commit a finished stage folder with its manifest; its checkpoints are no longer needed."""
         stage = planned.stage
-        plan = self.plan if stage != "reference" else read_plan(writer.path)
+        plan = read_plan(writer.path) if stage == PLANNER else self.plan
         manifest = Manifest(
             stage=stage, photo_key=self.key, fingerprint=planned.recorded(result), outputs={},
             config=self.config_record(planned),
@@ -296,7 +293,7 @@ class PhotoRun:
         log.error("%s: stage %s failed: %s", self.key, stage, exc)
         # From the exception itself: a batch reports its photos' failures after leaving the handler.
         log.debug("%s", "".join(traceback.format_exception(exc)))
-        self.error = exc
+        self.outcome.exception = exc
         hint = memory_hint(exc)
         message = f"{exc} ({hint})" if hint else str(exc)
         self.outcome.error = f"{stage}: {type(exc).__name__}: {message}"
@@ -324,76 +321,3 @@ class PhotoRun:
         """The stage's outcome, with the seconds it took (0 for a cached one)."""
         if self.reporter is not None:
             self.reporter(ProgressEvent(f"{self.key}:{stage}:{status}", 1, 1, wall_s, {}))
-
-
-def check_stage_id(stage: str, what: str = "stage") -> str:
-    if stage not in STAGE_IDS:
-        raise ValueError(f"{what} must be one of {STAGE_IDS}, got {stage!r}")
-    return stage
-
-
-def run_photo(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str,
-              init_mesh: Path | None = None, progress: ProgressFn | None = None,
-              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "qa") -> PhotoOutcome:
-    """Every stage for one photo, up to and including ``until``; never raises for a failing photo
-    (the outcome says why)."""
-    last = STAGE_IDS.index(check_stage_id(until, "until"))
-    store.cleanup_staging(key)
-    with run_setup(cfg) as (leased, lease):
-        run = PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites)
-        for stage in [s for s in run.stages if STAGE_IDS.index(s) <= last]:
-            try:
-                run.run(stage)
-            except Exception as exc:
-                run.fail(stage, exc)
-                break
-    record_lease(run.outcome.stages, lease)
-    return run.outcome
-
-
-def run_stage(photo: Path, store: Store, cfg: PipelineConfig, preset: str, key: str, stage: str,
-              init_mesh: Path | None = None, progress: ProgressFn | None = None,
-              suites: dict[str, Callable[[], PriorSuite]] | None = None) -> StageOutcome:
-    """One stage for one photo, reading its inputs from the store (what a Dagster asset calls).
-
-    Cached when its fingerprint matches, resumed from its newest checkpoint when one exists.
-    Raises on failure (``MissingUpstreamError`` when an input stage has no finished output), so
-    an orchestrator can retry; finished outputs and checkpoints stay in place."""
-    with run_setup(cfg, stage) as (leased, lease):
-        run = PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites)
-        run.run(stage)
-    record_lease(run.outcome.stages[-1:], lease)
-    return run.outcome.stages[-1]
-
-
-def photo_status(photo: Path, store: Store, cfg: PipelineConfig, key: str, init_mesh: Path | None = None,
-                 hashes: PhotoHashes | None = None, memo: dict[Any, Any] | None = None) -> dict[str, str]:
-    """Per stage: ``fresh`` / ``stale`` / ``missing`` (see ``PhotoRun.status``). For a whole catalog,
-    ``hashes`` avoids re-reading unchanged photos and one shared ``memo`` (with the same ``cfg``
-    object) avoids re-hashing the same configuration for every photo."""
-    run = PhotoRun(Path(photo), key, store, cfg, "", init_mesh, None, None)
-    if hashes is not None:
-        run.hash_photo = hashes.sha256
-    if memo is not None:
-        run.memo = memo
-    return run.status()
-
-
-def uses_weight_free(outcome: PhotoOutcome) -> bool:
-    return any(s.manifest is not None and s.manifest.prior.startswith(WEIGHT_FREE) for s in outcome.stages)
-
-
-def record_lease(outcomes: Iterable[StageOutcome], lease: GpuLease | None) -> None:
-    for outcome in outcomes:
-        outcome.lease = None if lease is None else lease.describe()
-
-
-@contextmanager
-def run_setup(cfg: PipelineConfig, stage: str | None = None) -> Iterator[tuple[PipelineConfig, GpuLease | None]]:
-    """Where every run starts (``run_photo``, ``run_stage`` and their batch forms): ``cfg.execution``
-    applied process-wide for the run (the kernels read it, ``morpheus_core.execution``; the previous
-    settings come back after it), and the device leased (``ops.engine.gpu_lease``; none for the
-    CPU-only reference stage run alone). Yields ``cfg`` on the leased device, and the lease."""
-    lease_cm = nullcontext((cfg.device, None)) if stage == "reference" else leased_device(cfg.device)
-    with executing(cfg.execution), lease_cm as (device, lease):
-        yield replace(cfg, device=device), lease

@@ -21,11 +21,11 @@ from assets_store.keys import assign_keys
 from assets_store.manifest import Fingerprint
 from assets_store.store import Store
 from ops.config.presets import PipelineConfig
-from ops.engine.pipeline import PhotoRun
 from ops.intake.errors import PreparationError
 from ops.intake.plan import PlanConfig, plan_reference, read_plan
 from ops.intake.prepare import PrepareConfig, prepare_reference, read_reference
 from ops.intake.segment import Segmenter
+from ops.pipeline.photo_run import PhotoRun
 from ops.stages.reference import ReferenceStageConfig
 
 

@@ -1,35 +1,113 @@
-"""Several photos through the pipeline together: each optimising stage of all photos that need it
-runs as one batch (``ops.engine.batch``), so one prior forward serves every photo; the rest is
-``ops.engine.pipeline`` photo by photo (same outputs, caching and manifests)."""
+"""The pipeline: photos through the declared stages (``ops.stages``), stage by stage.
+
+One entry point, ``Pipeline.run(photos, stages=…)``, behind the command line (a photo, or a group
+of ``--batch`` photos, through every stage up to ``--until``), Dagster (one stage of one or several
+photos per step) and the benchmarks. For each stage, every photo that needs it is planned
+(``ops.pipeline.photo_run``): cached outputs are reused, and the photos that must optimise run as
+one batch (``ops.engine.batch``), so one prior forward serves every photo; a stage that does not
+optimise runs photo by photo. Same outputs, caching and manifests whatever the grouping; a failing
+photo stops only itself.
+"""
 
 from __future__ import annotations
 
 import logging
 import shutil
 import time
-from collections.abc import Callable, Sequence
-from contextlib import ExitStack
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager, nullcontext
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from assets_store.hashing import bytes_sha256
+from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
+from morpheus_core.execution import executing
 from ops.config.presets import PipelineConfig
 from ops.engine.batch import run_jobs
-from ops.engine.pipeline import (
-    PhotoOutcome,
-    PhotoRun,
-    PlannedStage,
-    StageOutcome,
-    check_stage_id,
-    record_lease,
-    run_setup,
-)
-from ops.engine.priors import PriorSuite
+from ops.engine.gpu_lease import GpuLease, leased_device
+from ops.engine.priors import WEIGHT_FREE, PriorSuite
 from ops.engine.progress import ProgressEvent, ProgressFn
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.stage_job import StageJob
+from ops.pipeline.photo_run import PhotoOutcome, PhotoRun, PlannedStage
+from ops.stages import BY_ID, STAGE_IDS
 
 log = logging.getLogger("morpheus3d")
+
+
+def check_stage_id(stage: str, what: str = "stage") -> str:
+    if stage not in STAGE_IDS:
+        raise ValueError(f"{what} must be one of {STAGE_IDS}, got {stage!r}")
+    return stage
+
+
+def stages_until(until: str) -> tuple[str, ...]:
+    """The stages up to and including ``until``, in pipeline order (``morpheus3d run --until``)."""
+    return STAGE_IDS[:STAGE_IDS.index(check_stage_id(until, "until")) + 1]
+
+
+@dataclass
+class Pipeline:
+    """The stages assembled for one store and configuration.
+
+    ``preset`` is the name the manifests record; ``init_mesh`` replaces the stages declared
+    ``replaced_by_init_mesh``; ``suites`` injects prior suites by stage (the benchmarks' oracles)."""
+
+    store: Store
+    cfg: PipelineConfig
+    preset: str = ""
+    init_mesh: Path | None = None
+    progress: ProgressFn | None = None
+    suites: dict[str, Callable[[], PriorSuite]] | None = None
+
+    def run(self, photos: Sequence[tuple[Path, str]], stages: Iterable[str] | None = None) -> list[PhotoOutcome]:
+        """``stages`` (default: all; run in pipeline order) for every ``(photo, key)``, stage by stage.
+
+        A stage a photo needs but not listed is read from the store (``MissingUpstreamError`` when it
+        has no finished output). Never raises for a failing photo: its outcome says why
+        (``PhotoOutcome.error``, ``.exception``) and its later stages do not run. A batch of photos
+        resumes from its checkpoints only when re-run with the same photos."""
+        selected = set(STAGE_IDS if stages is None else (check_stage_id(s) for s in stages))
+        order = [s for s in STAGE_IDS if s in selected]
+        for _, key in photos:
+            self.store.cleanup_staging(key)
+        with run_setup(self.cfg, needs_device=not all(BY_ID[s].cpu_only for s in order)) as (cfg, lease):
+            runs = [PhotoRun(Path(photo), key, self.store, cfg, self.preset, self.init_mesh, self.progress,
+                             self.suites) for photo, key in photos]
+            for stage in order:
+                run_stage_together([r for r in runs if r.outcome.error is None and stage in r.stages], stage)
+        for run in runs:
+            for outcome in run.outcome.stages:
+                outcome.lease = None if lease is None else lease.describe()
+        return [r.outcome for r in runs]
+
+    def status(self, photo: Path, key: str, hashes: PhotoHashes | None = None,
+               memo: dict[Any, Any] | None = None) -> dict[str, str]:
+        """Per stage: ``fresh`` / ``stale`` / ``missing`` (``PhotoRun.status``). For a whole catalog,
+        ``hashes`` avoids re-reading unchanged photos and one shared ``memo`` (with this pipeline's
+        ``cfg``) avoids re-hashing the same configuration for every photo."""
+        run = PhotoRun(Path(photo), key, self.store, self.cfg, self.preset, self.init_mesh, None, None)
+        if hashes is not None:
+            run.hash_photo = hashes.sha256
+        if memo is not None:
+            run.memo = memo
+        return run.status()
+
+
+def uses_weight_free(outcome: PhotoOutcome) -> bool:
+    return any(s.manifest is not None and s.manifest.prior.startswith(WEIGHT_FREE) for s in outcome.stages)
+
+
+@contextmanager
+def run_setup(cfg: PipelineConfig, needs_device: bool = True) -> Iterator[tuple[PipelineConfig, GpuLease | None]]:
+    """Where every run starts: ``cfg.execution`` applied process-wide for the run (the kernels read it,
+    ``morpheus_core.execution``; the previous settings come back after it), and the device leased
+    (``ops.engine.gpu_lease``) unless no stage of the run touches it. Yields ``cfg`` on the leased
+    device, and the lease."""
+    lease_cm = leased_device(cfg.device) if needs_device else nullcontext((cfg.device, None))
+    with executing(cfg.execution), lease_cm as (device, lease):
+        yield replace(cfg, device=device), lease
 
 
 def _batch_checkpoint(runs: list[tuple[PhotoRun, PlannedStage]], stage: str) -> Path:
@@ -40,9 +118,10 @@ def _batch_checkpoint(runs: list[tuple[PhotoRun, PlannedStage]], stage: str) -> 
     return first.store.checkpoint_dir(first.key, stage) / f"batch-{digest[:16]}"
 
 
-def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
-    """``stage`` for every run that has not failed: cached ones are reused, the optimising ones run
-    as one batch (``ops.engine.batch``), the rest one by one. Failures are recorded per photo."""
+def run_stage_together(runs: list[PhotoRun], stage: str) -> None:
+    """``stage`` for every run: cached ones are reused, the optimising ones run as one batch
+    (``ops.engine.batch``; alone when only one photo optimises), the rest one by one. Failures are
+    recorded per photo."""
     pending: list[tuple[PhotoRun, PlannedStage]] = []
     for run in runs:
         try:
@@ -98,38 +177,3 @@ def _run_stage_together(runs: list[PhotoRun], stage: str) -> None:
             except Exception as exc:
                 run.fail(stage, exc)
     shutil.rmtree(ckpt, ignore_errors=True)
-
-
-def run_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineConfig, preset: str,
-              init_mesh: Path | None = None, progress: ProgressFn | None = None,
-              suites: dict[str, Callable[[], PriorSuite]] | None = None, until: str = "qa") -> list[PhotoOutcome]:
-    """Every stage for several photos (``(photo, key)`` pairs), stage by stage: the optimising
-    stages of all photos that need them run together as one batch, so one prior forward serves
-    every photo. Same outputs, caching and manifests as ``run_photo``; a failing photo stops
-    only itself. Each manifest's wall time is its batch's."""
-    last = STAGE_IDS.index(check_stage_id(until, "until"))
-    for _, key in photos:
-        store.cleanup_staging(key)
-    with run_setup(cfg) as (leased, lease):
-        runs = [PhotoRun(Path(photo), key, store, leased, preset, init_mesh, progress, suites) for photo, key in photos]
-        for stage in STAGE_IDS[:last + 1]:
-            live = [r for r in runs if r.outcome.error is None and stage in r.stages]
-            _run_stage_together(live, stage)
-    for run in runs:
-        record_lease(run.outcome.stages, lease)
-    return [r.outcome for r in runs]
-
-
-def run_stage_batch(photos: Sequence[tuple[Path, str]], store: Store, cfg: PipelineConfig, preset: str,
-                    stage: str, progress: ProgressFn | None = None) -> dict[str, StageOutcome | Exception]:
-    """One stage for several photos (``(photo, key)`` pairs) reading their inputs from the store;
-    those that must optimise run together as one batch (what a Dagster step over several photos
-    calls). Per key: the stage's outcome, or the exception that ``run_stage`` would have raised for
-    that photo alone. A batch is resumed from its checkpoints only when re-run with the same photos."""
-    check_stage_id(stage)
-    with run_setup(cfg, stage) as (leased, lease):
-        runs = [PhotoRun(Path(photo), key, store, leased, preset, None, progress, None) for photo, key in photos]
-        _run_stage_together(runs, stage)
-    for run in runs:
-        record_lease(run.outcome.stages[-1:], lease)
-    return {r.key: r.error if r.error is not None else r.outcome.stages[-1] for r in runs}

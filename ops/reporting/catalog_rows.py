@@ -30,11 +30,11 @@ from assets_store.manifest import Manifest
 from assets_store.store import Store
 from ops.engine.artifacts import RUNLOG_FILE
 from ops.engine.checks import QA_FILE, read_report
-from ops.engine.pipeline import PhotoOutcome
-from ops.engine.stage_ids import STAGE_IDS
 from ops.engine.viewer_page import VIEWER_FILE
 from ops.migrations import RENAMED_STAGES
+from ops.pipeline.photo_run import PhotoOutcome
 from ops.reporting.stage_columns import NOT_WORK, current_stage_columns
+from ops.stages import STAGE_IDS
 from ops.stages.bake import ASSET_GLB
 from ops.stages.export import MODEL_GLB, MODEL_USDZ, MODEL_WEB_GLB
 from ops.stages.qa import QA_TURNTABLE_FILE

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from assets_store.store import Store
-from ops.engine.pipeline import PhotoOutcome, uses_weight_free
+from ops.pipeline.photo_run import PhotoOutcome
+from ops.pipeline.runner import uses_weight_free
 from ops.stages.bake import ASSET_GLB
 
 

@@ -20,8 +20,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from ops.engine.stage_ids import STAGE_IDS
 from ops.migrations import RENAMED_STAGES
+from ops.stages import STAGE_IDS
 
 WORK_SUFFIX = "_work_s"  # per stage: the seconds of work this row counts (null: none, or counted elsewhere)
 BUILD_SUFFIX = "_build_s"  # per stage: the seconds it took to make the output this row describes

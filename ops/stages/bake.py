@@ -133,7 +133,7 @@ def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
 
 
 STAGE = Stage(
-    "bake", CODE_VERSION, reads=("reference", "dmtet", "texture"),
+    "bake", CODE_VERSION, config=BakeStageConfig, reads=("reference", "dmtet", "texture"),
     writes=(ASSET_GLB, ASSET_OBJ, "asset.mtl", "asset.png", TURNTABLE_FILE, REFERENCE_VIEW_FILE),
     preview=TURNTABLE_FILE, gpu=False, build=_build, checks=(REFERENCE_PSNR, UV_COVERAGE), judge=_judge,
     description="UV-unwrapped, baked, textured GLB (+ OBJ) with turntable and reference-view previews.")

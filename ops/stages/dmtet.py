@@ -323,7 +323,7 @@ def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
 
 
 STAGE = Stage(
-    "dmtet", CODE_VERSION, reads=("reference", "nerf"),
+    "dmtet", CODE_VERSION, config=DMTetStageConfig, reads=("reference", "nerf"),
     writes=(MESH_FILE, TEXTURE_FILE, DMTET_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE, gpu=True,
     build=_build, checks=(MESH_NONEMPTY, STABLE_OPTIMISATION), judge=_judge,
     description="Stage 1b: DMTet surface initialised from the NeRF density, mesh and texture field refined.")

@@ -227,6 +227,7 @@ def _true_size(metrics: dict[str, Any], cfg: CheckThresholds) -> QACheck:
 
 
 STAGE = Stage(
-    "export", CODE_VERSION, reads=("bake",), writes=(MODEL_GLB, MODEL_WEB_GLB, MODEL_USDZ, SIZE_CARD),
+    "export", CODE_VERSION, config=ExportStageConfig, reads=("bake",),
+    writes=(MODEL_GLB, MODEL_WEB_GLB, MODEL_USDZ, SIZE_CARD),
     preview=SIZE_CARD, gpu=False, build=_build, checks=(FORMATS_VALID, TRUE_SIZE), judge=_judge,
     description="The asset at its real size: GLB, web-sized GLB and USDZ, checked by the formats' validators.")

@@ -215,7 +215,8 @@ def _build(ctx: StageContext, cfg: NerfStageConfig) -> StageWork:
 
 
 STAGE = Stage(
-    "nerf", CODE_VERSION, reads=("reference",), writes=(NERF_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE,
+    "nerf", CODE_VERSION, config=NerfStageConfig, reads=("reference",),
+    writes=(NERF_FILE, PREVIEW_FILE, RUNLOG_FILE), preview=PREVIEW_FILE,
     gpu=True, build=_build, replaced_by_init_mesh=True,
     checks=(STABLE_OPTIMISATION,), judge=stable_optimisation,
     description="Stage 1a: hash-grid NeRF fitted to the reference under the 3D prior (SDS, t annealed 0.98 → 0.5).")

@@ -373,7 +373,7 @@ def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
 
 
 STAGE = Stage(
-    "qa", CODE_VERSION, reads=("reference", "nerf", "dmtet", "texture", "bake", "export"),
+    "qa", CODE_VERSION, config=QAConfig, reads=("reference", "nerf", "dmtet", "texture", "bake", "export"),
     writes=(QA_FILE, QA_TURNTABLE_FILE, QA_TURNTABLE_GIF, VIEWER_FILE), preview=QA_TURNTABLE_FILE, gpu=False,
     build=_build, checks=tuple(QA_CHECKS.values()),
     description="QA of the written GLB: reference-view PSNR, silhouette IoU, finiteness, mesh health, its parts "

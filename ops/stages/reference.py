@@ -48,8 +48,8 @@ def _judge(metrics: dict[str, Any], cfg: CheckThresholds) -> list[QACheck]:
 
 
 STAGE = Stage(
-    "reference", CODE_VERSION, reads=(),
+    "reference", CODE_VERSION, config=ReferenceStageConfig, reads=(),
     writes=(REFERENCE_FILE, PLAN_FILE, "rgba_<size>.png", "mask_<size>.png", PREVIEW_FILE), preview=PREVIEW_FILE,
-    gpu=False, build=_build, checks=(OBJECT_SIZE,), judge=_judge,
+    gpu=False, cpu_only=True, build=_build, checks=(OBJECT_SIZE,), judge=_judge,
     description="Segmentation, mask and recentred reference views of the photo, plus the stage plan "
                 "(DMTet grid, whether high-pass refinement pays, export face budget).")

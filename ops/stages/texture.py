@@ -144,7 +144,8 @@ def _build(ctx: StageContext, cfg: TextureStageConfig) -> StageWork:
 
 
 STAGE = Stage(
-    "texture", CODE_VERSION, reads=("reference", "dmtet"), writes=(TEXTURE_FILE, PREVIEW_FILE, RUNLOG_FILE),
+    "texture", CODE_VERSION, config=TextureStageConfig, reads=("reference", "dmtet"),
+    writes=(TEXTURE_FILE, PREVIEW_FILE, RUNLOG_FILE),
     preview=PREVIEW_FILE, gpu=True, build=_build,
     checks=(STABLE_OPTIMISATION,), judge=stable_optimisation,
     description="Stage 2: texture refined with the 3D prior (full band) and the 2D prior's VSD on the high "
