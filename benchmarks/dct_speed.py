@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from assets_store.atomic import atomic_write_text
-from morpheus_core.frequency import MATRIX_FORM_MAX_SIDE, dct2, idct2
+from morpheus_core.guidance.frequency import MATRIX_FORM_MAX_SIDE, dct2, idct2
 
 
 def _time(fn, x: torch.Tensor, reps: int) -> float:

@@ -30,11 +30,11 @@ import torch
 
 from benchmarks.timing import sync_device
 from morpheus_core.cameras import sample_orbit
-from morpheus_core.execution import current_execution, executing
 from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
+from morpheus_core.runtime.execution import current_execution, executing
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -1,7 +1,7 @@
 """The paper's thesis in pixel space: high-pass filtering keeps a 2D prior's detail, drops its colour cast.
 
 An image x starts flat (mid-grey) and is optimised with Adam under the hybrid guidance of
-``morpheus_core.guidance`` with two proxy priors built from a true photo y:
+``morpheus_core.guidance.hybrid`` with two proxy priors built from a true photo y:
   * a "3D prior" whose target is y low-passed (detail above r = 0.6 missing), and
   * a "2D prior" whose target is y with a tint and hue shift in its low band (colour deviation).
 Rows: (a) Base = 3D prior only; (b) + full-pass 2D prior; (c) + high-pass (r = 0.6) 2D prior.
@@ -27,10 +27,10 @@ import torch
 from PIL import Image, ImageDraw, ImageOps
 
 from assets_store.atomic import atomic_write, atomic_write_text
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import high_frequency_ratio, radial_psd
-from morpheus_core.guidance import GuidanceConfig, PriorBinding, hybrid_guidance
-from morpheus_core.guidance_presets import LAMBDA_C, PRIOR_2D, PRIOR_3D, SIGMA, term_2d, term_3d
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import high_frequency_ratio, radial_psd
+from morpheus_core.guidance.hybrid import GuidanceConfig, PriorBinding, hybrid_guidance
+from morpheus_core.guidance.presets import LAMBDA_C, PRIOR_2D, PRIOR_3D, SIGMA, term_2d, term_3d
 from morpheus_core.metrics.image import mean_colour_error, psnr
 from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target
 

@@ -5,7 +5,7 @@ The paper's NeRF grid (``HashGridConfig()``: 16 levels × 2 features, 2^19-row t
 gradients (table and points), timed with CUDA events over 20 iterations after warm-up; and the
 Triton kernels' max abs error against eager (forward, grad_table, grad_x) at 2^16 points.
 
-Paths (applied as execution settings, ``morpheus_core.execution``, as a pipeline run does):
+Paths (applied as execution settings, ``morpheus_core.runtime.execution``, as a pipeline run does):
 - eager: ``execution.hashgrid=eager execution.compile=false``, the tensor code uncompiled;
 - compiled: ``execution.hashgrid=eager`` with ``compiled_for``'s default on CUDA (``torch.compile``,
   dynamic shapes): the CUDA default before the Triton kernels;
@@ -28,9 +28,9 @@ from pathlib import Path
 import torch
 
 from assets_store.atomic import atomic_write_text
-from morpheus_core.devices import compile_enabled
-from morpheus_core.execution import ExecutionConfig, apply_execution
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
+from morpheus_core.runtime.devices import compile_enabled
+from morpheus_core.runtime.execution import ExecutionConfig, apply_execution
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COMMAND = "python -m benchmarks.hashgrid_kernel"

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from benchmarks.scenes import Scene
 from morpheus_core.cameras import Cameras
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass
 from morpheus_core.render.textured import render_textured

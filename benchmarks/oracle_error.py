@@ -14,8 +14,8 @@ import torch
 from assets_store.atomic import atomic_write_text
 from benchmarks.scenes import SCENE_NAMES, make_scene, make_scenes
 from morpheus_core.cameras import orbit
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import dct2
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import dct2
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 
 PX = 128

@@ -41,9 +41,9 @@ from assets_store.atomic import atomic_write_text
 from assets_store.store import Store
 from benchmarks.prior_speed import build_priors
 from benchmarks.timing import sync_device
-from morpheus_core.cuda_graphs import GraphedCall
-from morpheus_core.execution import apply_execution, current_execution
 from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.runtime.cuda_graphs import GraphedCall
+from morpheus_core.runtime.execution import apply_execution, current_execution
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.batch import BatchTask
 from ops.engine.loop import GuardCounters, LoopConfig, LoopResult, run_loop

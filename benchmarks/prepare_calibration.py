@@ -31,7 +31,7 @@ import skimage.data
 from PIL import Image
 
 from morpheus_core.imaging import bbox, object_high_frequency_ratio, recentre
-from morpheus_core.mask_ops import iou
+from morpheus_core.segmentation.mask_ops import iou
 from ops.intake.errors import PreparationError
 from ops.intake.photo import load_photo
 from ops.intake.plan import MEASURE_SIZE, PlanConfig

@@ -30,9 +30,9 @@ import torch
 
 from assets_store.atomic import atomic_write_text
 from benchmarks.timing import sync_device
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.guidance import PriorBinding, hybrid_guidance
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage1_dmtet, stage2_texture
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.hybrid import PriorBinding, hybrid_guidance
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D, stage1_dmtet, stage2_texture
 from morpheus_core.priors.architectures import image2d_parts, zero123_parts
 from morpheus_core.priors.image2d import Image2DPrior
 from morpheus_core.priors.image_prompt import IPAdapterEncoder

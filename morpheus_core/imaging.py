@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from morpheus_core.frequency import high_frequency_ratio
+from morpheus_core.guidance.frequency import high_frequency_ratio
 
 
 def resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:

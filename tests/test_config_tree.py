@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from morpheus_core.frequency import BandMask
-from morpheus_core.guidance_presets import PAPER_ROWS, paper_ablations
+from morpheus_core.guidance.frequency import BandMask
+from morpheus_core.guidance.presets import PAPER_ROWS, paper_ablations
 from ops.config.presets import PRESETS, PipelineConfig, preset, scaled_levels, with_steps
 from ops.engine.config_tree import ConfigError, apply_overrides, flat_keys, from_dict, to_dict
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import BandMask, dct2, filter_residual, idct2
-from morpheus_core.guidance import PriorBinding, TermDraw, hybrid_guidance
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage2_texture
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import BandMask, dct2, filter_residual, idct2
+from morpheus_core.guidance.hybrid import PriorBinding, TermDraw, hybrid_guidance
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D, stage2_texture
 from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
@@ -75,8 +75,8 @@ def test_decimating_a_cuda_mesh_keeps_it_on_the_gpu() -> None:
 def test_compiled_hash_grid_matches_eager_forward_and_backward(n: int) -> None:
     """The CUDA path compiles the encode kernels (torch.compile, dynamic shapes); values and both
     gradients must match the eager kernels at any point count."""
-    from morpheus_core.execution import ExecutionConfig, executing
     from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
+    from morpheus_core.runtime.execution import ExecutionConfig, executing
 
     grid = HashGrid(HashGridConfig(), generator=torch.Generator().manual_seed(n)).cuda()
     with torch.no_grad():

@@ -8,14 +8,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from morpheus_core.cuda_graphs import GraphedCall
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.guidance import PriorBinding, hybrid_guidance
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, stage2_texture
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.hybrid import PriorBinding, hybrid_guidance
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D, stage2_texture
 from morpheus_core.priors.image2d import Image2DPrior, Image2DSettings
 from morpheus_core.priors.lora import ObjectLoras
 from morpheus_core.priors.runtime import PriorRuntime
 from morpheus_core.priors.zero123 import Zero123Prior
+from morpheus_core.runtime.cuda_graphs import GraphedCall
 from tests.helpers import RES_2D, photo
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
@@ -262,7 +262,7 @@ def test_graphed_call_recaptures_an_evicted_signature_correctly() -> None:
 
 
 def test_released_graphs_give_their_memory_back_and_are_captured_again_when_called() -> None:
-    from morpheus_core.cuda_graphs import release_graphs
+    from morpheus_core.runtime.cuda_graphs import release_graphs
 
     w = torch.randn(256, 256, device="cuda").requires_grad_(True)
     graphed = GraphedCall(lambda x: torch.tanh(x @ w) @ w, [w])

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from morpheus_core.cameras import sample_orbit
-from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.render.volume import SampleBudget, VolumeRenderConfig, render_volume
+from morpheus_core.runtime.cuda_graphs import GraphedCall
 from tests.nerf_fields import occupancy_grid_for, small_nerf
 from tests.seeds import fresh_seed
 

@@ -7,8 +7,8 @@ import itertools
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import BandMask, dct2, filter_residual
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import BandMask, dct2, filter_residual
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 from morpheus_core.priors.proxy.prior import CurrentRenderCounterpart, ProxyPrior
 

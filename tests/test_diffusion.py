@@ -5,8 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule, NoiseScheduleConfig, TimestepRange, apply_cfg, sample_timesteps
-from morpheus_core.guidance_presets import nerf_t_range
+from morpheus_core.guidance.diffusion import (
+    NoiseSchedule,
+    NoiseScheduleConfig,
+    TimestepRange,
+    apply_cfg,
+    sample_timesteps,
+)
+from morpheus_core.guidance.presets import nerf_t_range
 
 
 def test_alpha_bar_matches_diffusers_scaled_linear() -> None:

@@ -1,4 +1,4 @@
-"""Execution settings (``morpheus_core.execution``): from their environment aliases and from
+"""Execution settings (``morpheus_core.runtime.execution``): from their environment aliases and from
 ``--set``, applied process-wide when a run starts, refused with the key's name when bad, and in
 no stage's fingerprint (changing them keeps every cached output)."""
 
@@ -10,7 +10,7 @@ import pytest
 
 from assets_store.hashing import config_hash
 from assets_store.manifest import Fingerprint
-from morpheus_core.execution import ExecutionConfig, apply_execution, current_execution, executing
+from morpheus_core.runtime.execution import ExecutionConfig, apply_execution, current_execution, executing
 from ops.cli import main
 from ops.config.presets import PipelineConfig, preset
 from ops.engine.config_tree import ConfigError

@@ -13,10 +13,10 @@ import pytest
 import torch
 from torch import nn
 
-from morpheus_core.execution import ExecutionConfig, executing
 from morpheus_core.geometry.field_heads import evaluate_heads, head_parameters
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField, head_mlp
+from morpheus_core.runtime.execution import ExecutionConfig, executing
 
 CUDA = torch.cuda.is_available()
 if not CUDA:
@@ -227,7 +227,7 @@ def test_field_query_and_gradients_match_eager(monkeypatch: pytest.MonkeyPatch, 
 
 
 def test_backend_choice(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``execution.field_mlp`` (``morpheus_core.execution``) picks the path, not the environment."""
+    """``execution.field_mlp`` (``morpheus_core.runtime.execution``) picks the path, not the environment."""
     density, albedo = heads(32, 64, 3, seed=30)
     x = torch.randn(20, 32, device=DEVICE)
     with pytest.raises(ValueError, match=r"execution\.field_mlp must be one of auto, triton, eager"):

@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from morpheus_core.frequency import (
+from morpheus_core.guidance.frequency import (
     BandMask,
     apply_band,
     band_bound,

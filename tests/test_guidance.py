@@ -7,9 +7,9 @@ import itertools
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule, TimestepRange
-from morpheus_core.frequency import BandMask, apply_band, dct2, frequency_reference_loss, idct2
-from morpheus_core.guidance import (
+from morpheus_core.guidance.diffusion import NoiseSchedule, TimestepRange
+from morpheus_core.guidance.frequency import BandMask, apply_band, dct2, frequency_reference_loss, idct2
+from morpheus_core.guidance.hybrid import (
     BandWeight,
     GuidanceConfig,
     NonFiniteInputError,
@@ -19,7 +19,7 @@ from morpheus_core.guidance import (
     hybrid_guidance,
     inject_gradient,
 )
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, paper_ablations, stage2_texture
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D, paper_ablations, stage2_texture
 from tests.helpers import PooledPrior, RandomPrior, TinyFinetunedPrior
 
 B, C, H, W = 2, 3, 12, 10
@@ -336,9 +336,9 @@ def test_ablation_rows_run_and_their_equivalences_hold() -> None:
 
 def test_paper_rows_hold_the_papers_numbers() -> None:
     """The rows are changes to the texture stage's settings; written out, they are the paper's terms."""
-    from morpheus_core.diffusion import TimestepRange
-    from morpheus_core.guidance import GuidanceConfig
-    from morpheus_core.guidance_presets import term_2d, term_3d
+    from morpheus_core.guidance.diffusion import TimestepRange
+    from morpheus_core.guidance.hybrid import GuidanceConfig
+    from morpheus_core.guidance.presets import term_2d, term_3d
 
     late = TimestepRange(0.02, 0.5)
     three_d = term_3d("sds", 1.0, late, 3.0, 1.0)

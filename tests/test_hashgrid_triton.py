@@ -12,7 +12,6 @@ import os
 import pytest
 import torch
 
-from morpheus_core.execution import ExecutionConfig, apply_execution, executing
 from morpheus_core.geometry.hashgrid import (
     HashGrid,
     HashGridConfig,
@@ -21,6 +20,7 @@ from morpheus_core.geometry.hashgrid import (
     eager_encode_forward,
     triton_kernels,
 )
+from morpheus_core.runtime.execution import ExecutionConfig, apply_execution, executing
 
 CUDA = torch.cuda.is_available()
 if not CUDA:

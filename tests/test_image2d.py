@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import torch
 
-from morpheus_core.diffusion import apply_cfg
+from morpheus_core.guidance.diffusion import apply_cfg
 from morpheus_core.imaging import canny_edges
 from morpheus_core.priors.image2d import Image2DPrior
 from morpheus_core.priors.image_prompt import ImagePromptEncoder, IPAdapterEncoder

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
+from morpheus_core.guidance.diffusion import NoiseSchedule
 from morpheus_core.priors.image2d import Image2DPrior
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras, adapter_name
 from tests.helpers import photo

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from morpheus_core.frequency import BandMask, dct_matrix
-from morpheus_core.loss_balance import LAMBDA_SCALE, mask_bce, reference_loss, scaled_total
+from morpheus_core.guidance.frequency import BandMask, dct_matrix
+from morpheus_core.guidance.loss_balance import LAMBDA_SCALE, mask_bce, reference_loss, scaled_total
 from ops.config.presets import preset
 from ops.stages.nerf import normal_smoothness
 
@@ -74,8 +74,8 @@ def test_normal_smoothness_is_a_mean_over_elements() -> None:
 
 
 def test_hybrid_guidance_reference_term_has_the_official_weight() -> None:
-    from morpheus_core.diffusion import NoiseSchedule
-    from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
+    from morpheus_core.guidance.diffusion import NoiseSchedule
+    from morpheus_core.guidance.hybrid import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
     from morpheus_core.priors.base import PixelSpacePrior
 
     class Zero(PixelSpacePrior):

@@ -218,7 +218,7 @@ def test_compiled_rasteriser_matches_eager_without_breaks_or_recompiles(device: 
     the CPU the graphs are traced and run by ``aot_eager``: inductor's CPU compile costs a minute."""
     import torch._dynamo
 
-    from morpheus_core import devices
+    from morpheus_core.runtime import devices
 
     eager = [_perturbed_render(sub, seed, size, device) for sub, seed, size in ((2, 0, 40), (3, 1, 56))]
     compile_fn = torch.compile
@@ -245,7 +245,7 @@ def test_compiled_rasteriser_matches_eager_without_breaks_or_recompiles(device: 
 def test_a_function_torch_compile_fails_on_runs_eagerly_after_one_warning(monkeypatch: pytest.MonkeyPatch) -> None:
     from torch._dynamo.exc import BackendCompilerFailed
 
-    from morpheus_core import devices
+    from morpheus_core.runtime import devices
 
     def broken_backend(gm: torch.fx.GraphModule, example_inputs: list) -> None:
         raise RuntimeError("backend bug")

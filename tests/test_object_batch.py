@@ -11,9 +11,9 @@ import torch
 
 from assets_store.runlog import read_runlog
 from assets_store.store import Store
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import BandMask
-from morpheus_core.guidance import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import BandMask
+from morpheus_core.guidance.hybrid import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
 from ops.cli import main
 from ops.engine import batch as object_batch
 from ops.engine.progress import ProgressEvent

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.guidance import PriorBinding, hybrid_guidance
-from morpheus_core.guidance_presets import PRIOR_2D, PRIOR_3D, magic123, stage2_texture, vsd
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.hybrid import PriorBinding, hybrid_guidance
+from morpheus_core.guidance.presets import PRIOR_2D, PRIOR_3D, magic123, stage2_texture, vsd
 from morpheus_core.priors.lora import ObjectLoras
 from tests.helpers import photo
 

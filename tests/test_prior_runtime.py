@@ -65,7 +65,7 @@ def test_place_freezes_and_casts() -> None:
 
 
 def test_lru_cache_drops_the_least_recently_used_entry() -> None:
-    from morpheus_core.cuda_graphs import LruCache
+    from morpheus_core.runtime.cuda_graphs import LruCache
 
     cache: LruCache[str, int] = LruCache(2)
     cache.put("a", 1)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from morpheus_core.mask_confidence import ConfidenceParams, Ramp, mask_confidence
-from morpheus_core.mask_edges import edge_cue
-from morpheus_core.mask_ops import border_ring, classical_segment, fit_background, iou, to_lab
 from morpheus_core.priors.proxy.shape import InflationConfig, from_reference_folder
+from morpheus_core.segmentation.mask_confidence import ConfidenceParams, Ramp, mask_confidence
+from morpheus_core.segmentation.mask_edges import edge_cue
+from morpheus_core.segmentation.mask_ops import border_ring, classical_segment, fit_background, iou, to_lab
 from ops.cli import main
 from ops.intake.errors import LowConfidenceError
 from ops.intake.plan import plan_reference

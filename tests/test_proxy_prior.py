@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import BandMask, filter_residual
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import BandMask, filter_residual
 from morpheus_core.metrics.image import mean_colour_error
 from morpheus_core.priors import Prior
 from morpheus_core.priors.proxy.prior import ColourDeviation, LowPass, ProxyPrior, constant_target

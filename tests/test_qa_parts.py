@@ -23,9 +23,9 @@ from morpheus_core.export.uv_bake import BakeConfig, bake_uv
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.part_silhouettes import compare_part_silhouettes, count_parts, mask_components
 from morpheus_core.render.textured import load_textured, render_textured
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig
+from morpheus_core.segmentation.part_silhouettes import compare_part_silhouettes, count_parts, mask_components
 from ops.engine.artifacts import save_module
 from ops.engine.checks import read_report
 from ops.stages.nerf import NERF_FILE

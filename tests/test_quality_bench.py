@@ -22,7 +22,7 @@ from benchmarks.scene_runs import Schedule
 from benchmarks.scenes import make_scene
 from benchmarks.stability import ENTRIES, Entry, run_stability
 from morpheus_core.cameras import Cameras, orbit, sample_orbit
-from morpheus_core.frequency import BandMask, dct2
+from morpheus_core.guidance.frequency import BandMask, dct2
 from morpheus_core.metrics.image import MetricInputError
 from morpheus_core.metrics.surface import surface_distance, visible_points
 from morpheus_core.render.mesh_renderer import render_mesh

@@ -137,7 +137,7 @@ def test_interpolation_gradients_match_finite_differences(device: torch.device) 
         assert torch.equal(fr.face_id, frags.face_id), "the perturbation must not change visibility"
         return (interpolate(a, fr) * weights).sum() + (fr.depth * weights[..., 0]).sum()
 
-    # On CUDA the gathers' gradients add with atomics (morpheus_core/gather.py), in no fixed order.
+    # On CUDA the gathers' gradients add with atomics (morpheus_core/runtime/gather.py), in no fixed order.
     nondet = 1e-12 if clip.is_cuda else 0.0
     assert torch.autograd.gradcheck(loss, (clip, attrs), eps=1e-6, atol=1e-6, rtol=1e-5, nondet_tol=nondet)
     # Batched (B, V, C) attributes take the same path per view.

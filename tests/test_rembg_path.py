@@ -13,7 +13,7 @@ import pytest
 from onnx import TensorProto, helper
 from PIL import Image
 
-from morpheus_core.mask_ops import iou
+from morpheus_core.segmentation.mask_ops import iou
 from ops.intake.prepare import prepare_reference
 from ops.intake.rembg_local import INPUT_SIZE, U2NetSession
 from ops.intake.segment import SegmentConfig, Segmenter

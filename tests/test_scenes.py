@@ -24,7 +24,7 @@ from benchmarks.scenes import (
     make_scenes,
 )
 from morpheus_core.cameras import orbit, reference_camera
-from morpheus_core.frequency import BandMask, apply_band, dct2, idct2
+from morpheus_core.guidance.frequency import BandMask, apply_band, dct2, idct2
 from morpheus_core.imaging import bbox, object_high_frequency_ratio
 from morpheus_core.render.textured import TexturedMesh, render_textured
 from ops.intake.prepare import prepare_reference

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from morpheus_core.mask_ops import (
+from morpheus_core.segmentation.mask_ops import (
     classical_segment,
     fill_holes,
     fit_background,
@@ -14,7 +14,7 @@ from morpheus_core.mask_ops import (
     shadow_like,
     to_lab,
 )
-from morpheus_core.mask_parts import select_parts
+from morpheus_core.segmentation.mask_parts import select_parts
 from tests.photo_factory import product_photo, segmentation_set
 
 SPECS = segmentation_set(seed=11)

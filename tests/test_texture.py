@@ -14,7 +14,6 @@ import torch
 import trimesh
 from PIL import Image
 
-from morpheus_core.atomic_io import atomic_write
 from morpheus_core.export.gltf import encode_glb, export_glb, export_obj
 from morpheus_core.export.uv_bake import (
     BakeConfig,
@@ -26,6 +25,7 @@ from morpheus_core.export.uv_bake import (
 )
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.runtime.atomic_io import atomic_write
 from morpheus_core.texture import TextureField, TextureFieldConfig
 
 TOLERANCE = 4.0 / 255.0

@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from morpheus_core.diffusion import NoiseSchedule, apply_cfg
-from morpheus_core.guidance import PriorBinding, hybrid_guidance
-from morpheus_core.guidance_presets import PRIOR_3D, stage1_dmtet
+from morpheus_core.guidance.diffusion import NoiseSchedule, apply_cfg
+from morpheus_core.guidance.hybrid import PriorBinding, hybrid_guidance
+from morpheus_core.guidance.presets import PRIOR_3D, stage1_dmtet
 from morpheus_core.priors.zero123 import Camera, Zero123Prior, relative_camera
 from tests.helpers import photo
 

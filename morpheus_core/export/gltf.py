@@ -2,7 +2,7 @@
 
 ``encode_glb`` / ``encode_obj`` return bytes (for callers that write through the asset store; ``decode_glb``
 reads the GLB back);
-``export_glb`` / ``export_obj`` write files atomically (``morpheus_core.atomic_io``). The texture
+``export_glb`` / ``export_obj`` write files atomically (``morpheus_core.runtime.atomic_io``). The texture
 (row 0 at v = 1) is handed to trimesh unflipped; trimesh writes glTF's top-left UV origin itself.
 """
 
@@ -15,8 +15,8 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from morpheus_core.atomic_io import atomic_write_bytes
 from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 
 def _trimesh(baked: BakedTexture) -> trimesh.Trimesh:

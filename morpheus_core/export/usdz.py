@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from morpheus_core.atomic_io import atomic_write_bytes
 from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 TEXTURE_NAME = "textures/basecolor.png"
 """Path of the packaged texture, relative to the root layer (and so inside the package)."""

@@ -65,7 +65,6 @@ from typing import Any
 import numpy as np
 from PIL import Image, features
 
-from morpheus_core.atomic_io import atomic_write_bytes
 from morpheus_core.export.glb_geometry import (
     EXT_MESHOPT,
     Compression,
@@ -74,6 +73,7 @@ from morpheus_core.export.glb_geometry import (
     pad4,
 )
 from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 WEBP_QUALITIES: tuple[int, ...] = (90, 80, 70, 60, 50)
 """WebP qualities tried at each texture size, best first. The ladder halves the texture rather than going

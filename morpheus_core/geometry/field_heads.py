@@ -3,7 +3,7 @@
 ``evaluate_heads`` runs both MLPs on the same hash-grid features. On CUDA (where Triton imports)
 that is ``mlp_triton``'s two kernels, forward and backward; elsewhere, and for inputs those
 kernels do not take, the ``nn.Sequential`` modules themselves (the CPU path and the reference).
-``execution.field_mlp`` (``morpheus_core.execution``, alias ``MORPHEUS_FIELD_MLP``) picks, like
+``execution.field_mlp`` (``morpheus_core.runtime.execution``, alias ``MORPHEUS_FIELD_MLP``) picks, like
 ``execution.hashgrid`` (``triton_support.choose``): ``auto`` (the kernels on CUDA; the default),
 ``triton`` (insist) or ``eager`` (the modules everywhere).
 The kernels' TF32 products were checked against the fp32 modules on all 8 synthetic scenes × 3
@@ -20,8 +20,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.execution import current_execution
-from morpheus_core.triton_support import choose
+from morpheus_core.runtime.execution import current_execution
+from morpheus_core.runtime.triton_support import choose
 
 
 def head_parameters(mlp: nn.Module) -> list[Tensor] | None:

@@ -14,7 +14,7 @@ Kernels: on CUDA the encode runs as fused Triton kernels (``hashgrid_triton``: o
 level in registers, table gradient by atomics, one per run of points in a cell on the dense levels,
 the same arithmetic as the code here), when Triton imports; otherwise (and for float64 inputs) the
 pure tensor functions below, compiled on CUDA (``compiled_for``). The CPU always runs the eager code
-below, unchanged. ``execution.hashgrid`` (``morpheus_core.execution``, alias ``MORPHEUS_HASHGRID``)
+below, unchanged. ``execution.hashgrid`` (``morpheus_core.runtime.execution``, alias ``MORPHEUS_HASHGRID``)
 picks: ``auto`` (the default: Triton on CUDA where available), ``triton`` (insist: an error where
 Triton cannot run, e.g. a CPU without ``TRITON_INTERPRET=1``), ``eager`` (the tensor code
 everywhere: debugging, the benchmarks' "before"). It is a process-wide execution setting, not a
@@ -31,9 +31,9 @@ from types import ModuleType
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.devices import compiled_for
-from morpheus_core.execution import current_execution
-from morpheus_core.triton_support import choose
+from morpheus_core.runtime.devices import compiled_for
+from morpheus_core.runtime.execution import current_execution
+from morpheus_core.runtime.triton_support import choose
 
 PRIMES = (1, 2654435761, 805459861)
 _INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation

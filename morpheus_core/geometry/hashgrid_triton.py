@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.geometry.hashgrid_triton_levels import backward_level, forward_level, load_points
-from morpheus_core.triton_support import device_guard, load_triton
+from morpheus_core.runtime.triton_support import device_guard, load_triton
 
 triton, tl, _jit = load_triton()
 

@@ -10,7 +10,7 @@ its own. Imported only by ``hashgrid_triton``, so ``TRITON_INTERPRET`` is read w
 
 from __future__ import annotations
 
-from morpheus_core.triton_support import load_triton
+from morpheus_core.runtime.triton_support import load_triton
 
 triton, tl, _jit = load_triton()
 

@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from morpheus_core.gather import gather_rows
 from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.runtime.gather import gather_rows
 
 # The six edges of a tet as corner pairs; "local edge e" below indexes this tuple.
 TET_EDGES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))

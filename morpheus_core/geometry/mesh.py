@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from morpheus_core.gather import gather_rows
+from morpheus_core.runtime.gather import gather_rows
 
 # Normalising a zero-length normal (degenerate face, isolated vertex) must not produce NaN.
 _NORMAL_EPS = 1e-20

@@ -33,7 +33,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from morpheus_core.triton_support import device_guard, interpreting, load_triton
+from morpheus_core.runtime.triton_support import device_guard, interpreting, load_triton
 
 triton, tl, _jit = load_triton()
 

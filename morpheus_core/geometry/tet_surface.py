@@ -18,7 +18,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from morpheus_core.gather import gather_rows
 from morpheus_core.geometry.marching_tets import (
     EmptySurfaceError,
     NonFiniteFieldError,
@@ -28,6 +27,7 @@ from morpheus_core.geometry.marching_tets import (
 )
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.tets import tet_grid
+from morpheus_core.runtime.gather import gather_rows
 
 
 def sdf_sign_change_loss(sdf: Tensor, edges: Tensor, scale: float = 1.0) -> Tensor:

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from morpheus_core.color import rgb_to_lab
-from morpheus_core.frequency import BandMask, filter_residual, high_frequency_ratio
+from morpheus_core.guidance.frequency import BandMask, filter_residual, high_frequency_ratio
 
 
 class MetricInputError(ValueError):

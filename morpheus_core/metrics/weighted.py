@@ -93,11 +93,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from morpheus_core.devices import pick_device
 from morpheus_core.imaging import batch_to_uint8_hwc
 from morpheus_core.metrics.lpips import LPIPS, LPIPS_FILE
 from morpheus_core.metrics.weighted_models import MANIQA_FILE, METRIC_SPECS, LoadedClip, ManiqaOnnx
 from morpheus_core.priors.registry import ModelSpec, ModelStatus, models_root, spec_named
+from morpheus_core.runtime.devices import pick_device
 
 log = logging.getLogger(__name__)
 

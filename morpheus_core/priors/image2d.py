@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.diffusion import apply_cfg
+from morpheus_core.guidance.diffusion import apply_cfg
 from morpheus_core.imaging import CANNY_HIGH, CANNY_LOW, canny_edges, composite_batch_on_white, resize_batch
 from morpheus_core.priors.image_prompt import ImagePromptEncoder, IPAdapterEncoder, PromptTokens, stack_tokens
 from morpheus_core.priors.objects import check_rows

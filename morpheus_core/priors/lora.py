@@ -11,7 +11,7 @@
 - The fine-tuning loss is the guidance's ``finetune_loss`` (ε-MSE at t ~ U[0, T) on the detached
   rendered latents); ``step()`` applies each object's Adam.
 - Checkpoints: ``save``/``load`` write one safetensors file per object, atomically
-  (``morpheus_core.atomic_io``).
+  (``morpheus_core.runtime.atomic_io``).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from morpheus_core.atomic_io import atomic_write
-from morpheus_core.cuda_graphs import LruCache
-from morpheus_core.device_skip import nonfinite, step_or_skip
 from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.runtime.atomic_io import atomic_write
+from morpheus_core.runtime.cuda_graphs import LruCache
+from morpheus_core.runtime.device_skip import nonfinite, step_or_skip
 
 
 @dataclass(frozen=True)
@@ -204,7 +204,7 @@ class ObjectLoras:
     def step(self, object_ids: Sequence[str] | None = None, ok: Tensor | bool = True) -> Tensor:
         """One Adam step per object (of ``object_ids``, default all) that received gradients, unless
         ``ok`` is false or the object's gradients are not finite (a half-precision overflow must not
-        corrupt an adapter). Decided on the device (``morpheus_core.device_skip``); returns per object
+        corrupt an adapter). Decided on the device (``morpheus_core.runtime.device_skip``); returns per object
         whether its step was skipped (a bool tensor, in order)."""
         ids = tuple(object_ids) if object_ids is not None else tuple(self._optimizers)
         self._require(ids)

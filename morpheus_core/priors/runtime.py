@@ -21,7 +21,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.cuda_graphs import GraphedCall
+from morpheus_core.runtime.cuda_graphs import GraphedCall
 
 Accel = Literal["eager", "cudagraph", "compile"]
 _HALF = (torch.float16, torch.bfloat16)

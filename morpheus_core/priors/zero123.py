@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.diffusion import apply_cfg
+from morpheus_core.guidance.diffusion import apply_cfg
 from morpheus_core.imaging import batch_to_uint8_hwc, composite_batch_on_white, resize_batch
 from morpheus_core.priors.objects import check_rows, gather_rows
 from morpheus_core.priors.registry import ModelRegistry

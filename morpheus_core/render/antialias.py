@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from morpheus_core.devices import compiled_for
-from morpheus_core.gather import gather_batched_rows, gather_rows
 from morpheus_core.render.raster import Fragments, RasterInputError, clip_to_pixels, pair_chunks, pixel_span
+from morpheus_core.runtime.devices import compiled_for
+from morpheus_core.runtime.gather import gather_batched_rows, gather_rows
 
 # Resolution of the crossing position t in the (t, edge) key that picks the outermost edge of a pair.
 _T_BITS = 20

@@ -39,9 +39,9 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from morpheus_core.devices import compiled_for
-from morpheus_core.gather import gather_batched_rows, gather_rows
 from morpheus_core.geometry.mesh import MeshIndexError, MeshTopology, mesh_topology
+from morpheus_core.runtime.devices import compiled_for
+from morpheus_core.runtime.gather import gather_batched_rows, gather_rows
 
 _INT64_MAX = torch.iinfo(torch.int64).max
 # Bits of the packed z-buffer key spent on depth at most; the rest (below bit 62) hold the face id.

@@ -9,8 +9,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.cuda_graphs import GraphedCall
 from morpheus_core.geometry.nerf import RadianceField
+from morpheus_core.runtime.cuda_graphs import GraphedCall
 
 FieldValues = Callable[[Tensor], tuple[Tensor, ...]]
 """Points (N, 3) → ``field_values``."""

@@ -24,10 +24,10 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.devices import filled_like, to_device
 from morpheus_core.geometry.nerf import RadianceField
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.sample_budget import FieldValues, SampleBudget, field_values
+from morpheus_core.runtime.devices import filled_like, to_device
 
 
 @dataclass(frozen=True)

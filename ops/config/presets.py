@@ -13,7 +13,7 @@
 Everything is overridable by dotted path (``ops.engine.config_tree.apply_overrides``), e.g.
 ``--set texture.guidance.k2d=0`` (the paper's Base row) or ``--set nerf.loop.steps=2000``.
 
-``execution`` (``morpheus_core.execution.ExecutionConfig``) is how the kernels run, not what they
+``execution`` (``morpheus_core.runtime.execution.ExecutionConfig``) is how the kernels run, not what they
 compute: no stage's fingerprint holds it, and a run applies it process-wide when it starts
 (``ops.pipeline.runner.run_setup``). Its defaults come from the environment aliases
 (``MORPHEUS_HASHGRID``, ``MORPHEUS_FIELD_MLP``, ``MORPHEUS_COMPILE``).
@@ -26,11 +26,11 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, make_dataclass, replace
 
-from morpheus_core.execution import ExecutionConfig
 from morpheus_core.export.uv_bake import BakeConfig
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
+from morpheus_core.runtime.execution import ExecutionConfig
 from morpheus_core.texture import TextureFieldConfig
 from ops.config.preset_names import PRESET_NAMES
 from ops.engine.config_tree import ConfigError, apply_overrides

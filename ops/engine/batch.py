@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from morpheus_core.guidance import PriorBinding, hybrid_guidance
+from morpheus_core.guidance.hybrid import PriorBinding, hybrid_guidance
 from morpheus_core.priors.proxy.prior import CurrentRenderCounterpart, ProxyPrior
 from ops.engine.guided_task import GuidedTask, RenderedStep, step_output
 from ops.engine.loop import BadStep, LoopConfig, LoopResult, StepOutput, run_loop

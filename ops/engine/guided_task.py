@@ -18,10 +18,10 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.guidance import GuidanceOutput, hybrid_guidance
-from morpheus_core.guidance_presets import GuidanceSettings
-from morpheus_core.loss_balance import scaled_total
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.hybrid import GuidanceOutput, hybrid_guidance
+from morpheus_core.guidance.loss_balance import scaled_total
+from morpheus_core.guidance.presets import GuidanceSettings
 from morpheus_core.render.output import RenderOutput
 from ops.engine.early_stop import converged
 from ops.engine.loop import LoopConfig, StepOutput
@@ -50,7 +50,7 @@ class RenderedStep:
 
 def step_output(out: GuidanceOutput, extra_loss: Tensor, terms: dict[str, Tensor], vsd: bool) -> StepOutput:
     """A step's loss: the guidance (θ), the VSD counterparts' loss (φ) and the stage's own terms, balanced
-    as the official code balances them (``morpheus_core.loss_balance``)."""
+    as the official code balances them (``morpheus_core.guidance.loss_balance``)."""
     terms = {"guidance": out.loss.detach(), **({"finetune": out.finetune_loss.detach()} if vsd else {}), **terms}
     return StepOutput(scaled_total(out.loss, extra_loss, out.finetune_loss), terms, out.nonfinite_prior_values)
 

@@ -9,12 +9,12 @@ occupancy grids…), both random generators, the step, the loss history and the 
 so a run killed at any point and restarted replays the same updates (bit-identical on CPU).
 
 Guards: a step whose loss, prior output or gradients hold NaN/Inf is skipped (no update). The
-decision is made on the device: fused optimisers skip on a device flag (``morpheus_core.device_skip``), so a step
-needs no host sync; the counts are read at log and checkpoint rows. There, parameters a step left
-non-finite, or a run of ``max_bad_steps`` bad steps still going, restore the last good state (the
-newest checkpoint, or the start); skipped steps change nothing, so finding them a few steps late
-loses nothing. Every event is counted; ``NonFiniteStateError`` from the checkpoint writer
-guarantees no NaN is ever saved.
+decision is made on the device: fused optimisers skip on a device flag
+(``morpheus_core.runtime.device_skip``), so a step needs no host sync; the counts are read at log
+and checkpoint rows. There, parameters a step left non-finite, or a run of ``max_bad_steps`` bad
+steps still going, restore the last good state (the newest checkpoint, or the start); skipped steps
+change nothing, so finding them a few steps late loses nothing. Every event is counted;
+``NonFiniteStateError`` from the checkpoint writer guarantees no NaN is ever saved.
 
 Early stopping: at each log row the task says whether its scene has converged
 (``ops.engine.early_stop``); the loop then ends before ``steps`` and the result says where.
@@ -34,7 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from assets_store.checkpoints import Checkpoints
-from morpheus_core.device_skip import nonfinite, step_or_skip
+from morpheus_core.runtime.device_skip import nonfinite, step_or_skip
 from ops.engine.progress import Heartbeat, ProgressEvent, ProgressFn
 
 _AUTOCAST: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
@@ -121,7 +121,7 @@ class StageTask(Protocol):
     def after_step(self, ok: Tensor | bool) -> None:
         """Updates outside the main optimisers (e.g. the VSD LoRA) after a good step; after a bad
         one, drop whatever gradients they received. ``ok`` is a bool on the device when the step ran
-        (``morpheus_core.device_skip`` applies it without a host sync), False when it raised ``BadStep``."""
+        (``morpheus_core.runtime.device_skip`` applies it without a host sync), False when it raised ``BadStep``."""
 
     def state(self) -> dict[str, Any]: ...
 

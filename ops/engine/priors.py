@@ -24,15 +24,15 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.cuda_graphs import release_graphs
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.guidance import PriorBinding
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.hybrid import PriorBinding
 from morpheus_core.priors.lora import LoraSettings, ObjectLoras
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 from morpheus_core.priors.proxy.prior import Corruption, CurrentRenderCounterpart, ProxyPrior
 from morpheus_core.priors.proxy.shape import InflatedProxy, InflationConfig
 from morpheus_core.priors.registry import PRIOR_MODELS, ModelRegistry
 from morpheus_core.priors.runtime import PriorRuntime
+from morpheus_core.runtime.cuda_graphs import release_graphs
 from ops.engine.target import read_rgba
 
 log = logging.getLogger("morpheus3d")
@@ -242,7 +242,7 @@ class RealSuite(PriorSuite):
                 loras.remove(self.object_id)
         for model in self.models.values():
             model.forget(self.object_id)
-        release_graphs()  # the shared priors' graphs end with the stage (morpheus_core.cuda_graphs)
+        release_graphs()  # the shared priors' graphs end with the stage (morpheus_core.runtime.cuda_graphs)
 
 
 def build_suite(cfg: PriorsConfig, device: torch.device, reference_dir: Path, object_id: str,

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from morpheus_core.imaging import bbox, recentre
-from morpheus_core.mask_parts import PartRecord, kept_count, scale_box, scaled_parts
+from morpheus_core.segmentation.mask_parts import PartRecord, kept_count, scale_box, scaled_parts
 from ops.intake.errors import PreparationError
 from ops.intake.photo import LoadConfig, load_photo
 from ops.intake.segment import ChainStep, SegmentConfig, Segmenter

@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 
 from morpheus_core.imaging import fit_within, resize, touched_borders
-from morpheus_core.mask_confidence import ConfidenceParams, MaskConfidence, mask_confidence
-from morpheus_core.mask_ops import ClassicalParams, classical_segment, fill_holes
-from morpheus_core.mask_parts import PartRecord, kept_count, scaled_parts, select_parts
+from morpheus_core.segmentation.mask_confidence import ConfidenceParams, MaskConfidence, mask_confidence
+from morpheus_core.segmentation.mask_ops import ClassicalParams, classical_segment, fill_holes
+from morpheus_core.segmentation.mask_parts import PartRecord, kept_count, scaled_parts, select_parts
 from ops.intake.errors import LowConfidenceError, SegmentationError
 from ops.intake.photo import Photo
 from ops.intake.rembg_local import U2NetSession, find_model, model_candidates

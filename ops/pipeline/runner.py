@@ -23,7 +23,7 @@ from typing import Any
 from assets_store.hashing import bytes_sha256
 from assets_store.photo_hashes import PhotoHashes
 from assets_store.store import StageWriter, Store
-from morpheus_core.execution import executing
+from morpheus_core.runtime.execution import executing
 from ops.config.presets import PipelineConfig
 from ops.engine.batch import run_jobs
 from ops.engine.gpu_lease import GpuLease, leased_device
@@ -102,7 +102,7 @@ def uses_weight_free(outcome: PhotoOutcome) -> bool:
 @contextmanager
 def run_setup(cfg: PipelineConfig, needs_device: bool = True) -> Iterator[tuple[PipelineConfig, GpuLease | None]]:
     """Where every run starts: ``cfg.execution`` applied process-wide for the run (the kernels read it,
-    ``morpheus_core.execution``; the previous settings come back after it), and the device leased
+    ``morpheus_core.runtime.execution``; the previous settings come back after it), and the device leased
     (``ops.engine.gpu_lease``) unless no stage of the run touches it. Yields ``cfg`` on the leased
     device, and the lease."""
     lease_cm = leased_device(cfg.device) if needs_device else nullcontext((cfg.device, None))

@@ -19,11 +19,11 @@ from typing import Any
 import torch
 
 from morpheus_core.cameras import turntable
-from morpheus_core.devices import pick_device
 from morpheus_core.export.gltf import export_glb, export_obj
 from morpheus_core.export.uv_bake import BakeConfig, bake_uv
 from morpheus_core.geometry.mesh_hygiene import drop_floaters, topology_report
 from morpheus_core.render.textured import load_textured, render_textured
+from morpheus_core.runtime.devices import pick_device
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import load_module
 from ops.engine.checks import ERROR, WARN, CheckSpec, CheckThresholds, QACheck, check

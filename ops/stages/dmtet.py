@@ -4,7 +4,7 @@ The SDF starts from the NeRF density (inside where density > 25) on the grid the
 texture field (hash grid + MLP) is warm-started from the NeRF's albedo around the surface and
 then trained with the geometry. Losses: reference guidance + mask BCE on the reference view, the
 3D prior on random views, Laplacian smoothness, normal consistency and the SDF sign regulariser
-(every term a mean, balanced as in ``morpheus_core.loss_balance``).
+(every term a mean, balanced as in ``morpheus_core.guidance.loss_balance``).
 
 ``--init-mesh`` (refining an existing asset, paper §5.6): the SDF sign comes from the mesh's
 winding number and the texture field is fitted to colours sampled from its baked texture.
@@ -23,7 +23,6 @@ import torch
 
 from assets_store.atomic import atomic_write
 from assets_store.hashing import file_sha256
-from morpheus_core.devices import pick_device
 from morpheus_core.export.uv_bake import cluster_decimate
 from morpheus_core.geometry.marching_tets import EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
@@ -37,10 +36,11 @@ from morpheus_core.geometry.nerf_to_dmtet import (
 )
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.geometry.winding import winding_number
-from morpheus_core.guidance_presets import DMTET_GUIDANCE, GuidanceSettings
-from morpheus_core.loss_balance import mask_bce
+from morpheus_core.guidance.loss_balance import mask_bce
+from morpheus_core.guidance.presets import DMTET_GUIDANCE, GuidanceSettings
 from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.render.textured import load_textured, sample_surface
+from morpheus_core.runtime.devices import pick_device
 from morpheus_core.texture import TextureField, TextureFieldConfig, fit_colour_field, jittered_surface_points
 from ops.engine.artifacts import RUNLOG_FILE, require_finite_output, save_module, write_log
 from ops.engine.checks import (

@@ -16,13 +16,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from morpheus_core.devices import pick_device
 from morpheus_core.geometry.hashgrid import HashGridConfig
 from morpheus_core.geometry.nerf import NerfConfig, NerfField
-from morpheus_core.guidance_presets import NERF_GUIDANCE, GuidanceSettings
-from morpheus_core.loss_balance import mask_bce
+from morpheus_core.guidance.loss_balance import mask_bce
+from morpheus_core.guidance.presets import NERF_GUIDANCE, GuidanceSettings
 from morpheus_core.render.sample_budget import SampleBudget
 from morpheus_core.render.volume import OccupancyGrid, OccupancyGridConfig, VolumeRenderConfig, render_volume
+from morpheus_core.runtime.devices import pick_device
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.checks import STABLE_OPTIMISATION, stable_optimisation
 from ops.engine.guided_task import GuidedTask, RenderedStep

@@ -32,12 +32,13 @@ from PIL import Image
 
 from assets_store.atomic import atomic_write_bytes, atomic_write_text
 from morpheus_core.cameras import turntable
-from morpheus_core.devices import pick_device
 from morpheus_core.metrics.colour_deviation import colour_deviation
 from morpheus_core.metrics.image import hf_ratio, mask_iou, masked_psnr, masked_ssim, ssim
 from morpheus_core.metrics.mesh_health import mesh_health
 from morpheus_core.metrics.weighted import WeightedMetricsConfig, compute_weighted_metrics
-from morpheus_core.part_silhouettes import (
+from morpheus_core.render.textured import TexturedMesh, load_textured, render_textured
+from morpheus_core.runtime.devices import pick_device
+from morpheus_core.segmentation.part_silhouettes import (
     PartComparison,
     asset_silhouettes,
     compare_part_silhouettes,
@@ -45,7 +46,6 @@ from morpheus_core.part_silhouettes import (
     nerf_silhouettes,
     part_cameras,
 )
-from morpheus_core.render.textured import TexturedMesh, load_textured, render_textured
 from ops.engine.checks import ERROR, QA_FILE, WARN, CheckSpec, QACheck, QAReport, check, read_report, verdict
 from ops.engine.previews import save_strip, to_uint8
 from ops.engine.progress import Heartbeat

@@ -17,10 +17,10 @@ from typing import Any
 
 import torch
 
-from morpheus_core.devices import pick_device
 from morpheus_core.geometry.mesh import Mesh
-from morpheus_core.guidance_presets import TEXTURE_GUIDANCE, GuidanceSettings
+from morpheus_core.guidance.presets import TEXTURE_GUIDANCE, GuidanceSettings
 from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
+from morpheus_core.runtime.devices import pick_device
 from morpheus_core.texture import TextureField, TextureFieldConfig
 from ops.engine.artifacts import RUNLOG_FILE, load_module, require_finite_output, save_module, write_log
 from ops.engine.checks import STABLE_OPTIMISATION, stable_optimisation

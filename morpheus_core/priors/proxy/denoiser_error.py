@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.color import rotate_hue
-from morpheus_core.frequency import BandMask, dct2, filter_residual, idct2
+from morpheus_core.guidance.frequency import BandMask, dct2, filter_residual, idct2
 
 # The drift's random numbers are read from DCT coefficients of ε at the top corner of the band,
 # where the noise-driven error's weight is smallest (E_t falls like 1/f²): independent standard

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from morpheus_core.color import rotate_hue
-from morpheus_core.diffusion import NoiseSchedule
-from morpheus_core.frequency import BandMask, filter_residual
+from morpheus_core.guidance.diffusion import NoiseSchedule
+from morpheus_core.guidance.frequency import BandMask, filter_residual
 from morpheus_core.priors.base import PixelSpacePrior
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 
