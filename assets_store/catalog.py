@@ -29,7 +29,7 @@ the set of ``compact-`` files change between its first and its second listing: i
 day again. So a reader sees either the old files or the new one, never both, never neither.
 
 The files' naming, listing, reading and unifying are in ``assets_store.catalog_files``, the compaction in
-``assets_store.catalog_compaction`` (``Catalog`` inherits it from ``CatalogCompaction``).
+``assets_store.catalog_compaction`` (``Catalog.compact``).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from assets_store.atomic import atomic_write
-from assets_store.catalog_compaction import CatalogCompaction
+from assets_store.catalog_compaction import CompactResult, compact_days
 from assets_store.catalog_files import (
     PART_PREFIX,
     READ_THREADS,
@@ -108,7 +108,7 @@ def rows_table(rows: Sequence[Mapping[str, Any]]) -> pa.Table:
 # ---------------------------------------------------------------------------------------------- the catalog
 
 
-class Catalog(CatalogCompaction):
+class Catalog:
     """An append-only Parquet dataset partitioned by UTC day (see the module docstring)."""
 
     def __init__(self, root: Path | str) -> None:
@@ -290,7 +290,12 @@ class Catalog(CatalogCompaction):
         table = self.read(since, read_cols)
         return latest_rows(table, wanted)
 
-    # -- compaction: ``compact``, inherited from ``CatalogCompaction`` (assets_store.catalog_compaction)
+    # -- compaction (``assets_store.catalog_compaction``)
+
+    def compact(self, before: dt.date | None = None, min_files: int = 2, retention_s: float = 600.0) -> CompactResult:
+        """Merge each past day's files into one ``compact-`` file; return what was done (``compact_days``: which
+        days, when replaced files go, what is never touched)."""
+        return compact_days(self.root, self.days, self.day_dir, before, min_files, retention_s)
 
 
 def latest_rows(table: pa.Table, columns: Sequence[str] | None = None) -> pa.Table:
