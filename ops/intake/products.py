@@ -39,9 +39,7 @@ class ProductSize:
 
     def __post_init__(self) -> None:
         for name in DIMENSIONS:
-            v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number of millimetres, got {v}")
+            positive_mm(name, getattr(self, name))
 
     @property
     def given(self) -> bool:
@@ -67,6 +65,14 @@ class ProductTable:
         return self.sizes.get(photo)
 
 
+def positive_mm(name: str, value: float | None) -> float | None:
+    """``value`` if it is None or a positive, finite number of millimetres; else ``ValueError`` naming ``name``
+    (the one rule for a size, wherever it is given: ``products.csv``, the export stage's config)."""
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive number of millimetres, got {value}")
+    return value
+
+
 def _dimension(text: str, where: str, name: str) -> float | None:
     text = text.strip()
     if not text:
@@ -75,9 +81,10 @@ def _dimension(text: str, where: str, name: str) -> float | None:
         value = float(text)
     except ValueError:
         raise ProductsFileError(f"{where}: {name} {text!r} is not a number; write millimetres, e.g. 250") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ProductsFileError(f"{where}: {name} {text!r} must be a positive number of millimetres")
-    return value
+    try:
+        return positive_mm(name, value)
+    except ValueError:
+        raise ProductsFileError(f"{where}: {name} {text!r} must be a positive number of millimetres") from None
 
 
 def read_products(path: Path, photos: set[str] | None = None) -> ProductTable:

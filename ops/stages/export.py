@@ -39,7 +39,7 @@ from morpheus_core.export.web_glb import write_web_glb
 from ops.engine.checks import ERROR, WARN, CheckSpec, CheckThresholds, QACheck, check
 from ops.engine.stage import Stage, StageContext, StageWork
 from ops.engine.stage_job import StageResult
-from ops.intake.products import DIMENSIONS, ProductSize, products_for
+from ops.intake.products import DIMENSIONS, ProductSize, positive_mm, products_for
 from ops.stages.bake import ASSET_GLB
 
 MODEL_GLB = "model.glb"
@@ -71,9 +71,7 @@ class ExportStageConfig:
 
     def __post_init__(self) -> None:
         for name in (*DIMENSIONS, "default_height_mm"):
-            v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ValueError(f"export.{name} must be a positive number of millimetres, got {v}")
+            positive_mm(f"export.{name}", getattr(self, name))
         if self.web_budget_bytes <= 0:
             raise ValueError(f"export.web_budget_bytes must be positive, got {self.web_budget_bytes}")
 
