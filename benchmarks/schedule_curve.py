@@ -107,9 +107,10 @@ def markdown(curves: dict[str, dict[str, list[dict[str, Any]]]], rows: list[dict
         lines += ["", "Stochastic against noise-free oracle, same schedule, scene and seed (GLB novel-view PSNR):", "",
                   "| schedule | scene | seed | noise-free (dB) | stochastic (dB) | Δ |", "|---|---|---|---:|---:|---:|"]
         lines += [f"| {b} | {s} | {seed} | {nf:.2f} | {st:.2f} | {st - nf:+.2f} |" for b, s, seed, nf, st in both]
-        deltas = [st - nf for *_, nf, st in both]
-        lines.append(f"| **all** | | | {statistics.fmean(x[3] for x in both):.2f} | "
-                     f"{statistics.fmean(x[4] for x in both):.2f} | {statistics.fmean(deltas):+.2f} |")
+        for base in sorted({x[0] for x in both}, key=_steps):  # the mean over scenes, per schedule
+            nf, st = zip(*[(x[3], x[4]) for x in both if x[0] == base], strict=True)
+            lines.append(f"| **{base}, all scenes** | | | {statistics.fmean(nf):.2f} | {statistics.fmean(st):.2f} | "
+                         f"{statistics.fmean(st) - statistics.fmean(nf):+.2f} |")
     return "\n".join(lines) + "\n"
 
 
