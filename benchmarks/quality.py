@@ -322,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 _ABOUT_ABLATIONS = """\
-Scenes: {scenes} (`benchmarks/scenes.py`, seed 0). Each scene's product photo goes through the real
+Scenes: {scenes} (`benchmarks/scenes/`, seed 0). Each scene's product photo goes through the real
 pipeline (reference → NeRF → DMTet → texture) with the oracle priors ({oracle}). Stage 1 runs once
 per scene; every row re-runs only stage 2 from the same DMTet output, with one configuration for all
 scenes: schedule `{schedule.label}` (preset `{schedule.preset}`, overrides {schedule.overrides}).
