@@ -82,6 +82,14 @@ class LoopConfig:
     """Share of the schedule every stage runs before it may stop."""
     early_stop_min_gain_db: float = 0.05
     """Gain (dB) of the best reference-view PSNR over the patience window that counts as still improving."""
+    lr_final: float = 1.0
+    """Every learning rate's multiplier at the last step, reached by a half cosine that starts at
+    ``lr_decay_start`` × ``steps``; 1 (the default, the paper's constant rates): no decay. A diffusion
+    prior's gradient is a different guess at every noise draw, so at a constant rate the parameters keep
+    wandering around what the priors agree on by an amount the rate sets; a decaying rate averages the
+    late guesses instead (``lr_multiplier``)."""
+    lr_decay_start: float = 0.5
+    """Share of the schedule after which the learning rates decay towards ``lr_final``."""
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -101,6 +109,20 @@ class LoopConfig:
                              f"{self.early_stop_patience} and {self.early_stop_min_share}")
         if not (math.isfinite(self.early_stop_min_gain_db) and self.early_stop_min_gain_db >= 0):
             raise ValueError(f"early_stop_min_gain_db must be finite and ≥ 0, got {self.early_stop_min_gain_db}")
+        if not (0 < self.lr_final <= 1 and 0 <= self.lr_decay_start < 1):
+            raise ValueError(f"lr_final must be in (0, 1] and lr_decay_start in [0, 1), got {self.lr_final} and "
+                             f"{self.lr_decay_start}")
+
+
+def lr_multiplier(config: LoopConfig, step: int) -> float:
+    """The learning rates' multiplier at ``step`` (0-based): 1 until ``lr_decay_start`` × ``steps``, then a half
+    cosine down to ``lr_final`` at the last step. A function of the step alone, so a resumed run decays alike."""
+    start = config.lr_decay_start * config.steps
+    last = config.steps - 1
+    if config.lr_final == 1 or step <= start or last <= start:
+        return 1.0
+    t = min(1.0, (step - start) / (last - start))
+    return config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t))
 
 
 @dataclass
@@ -241,6 +263,14 @@ def _zero_grad(task: StageTask) -> None:
         opt.zero_grad(set_to_none=True)
 
 
+def _set_learning_rates(task: StageTask, multiplier: float) -> None:
+    """Each parameter group's rate: its configured rate (kept in the group as ``base_lr``, so it travels
+    with the optimiser's state into checkpoints) × ``multiplier``."""
+    for opt in task.optimizers().values():
+        for group in opt.param_groups:
+            group["lr"] = group.setdefault("base_lr", group["lr"]) * multiplier
+
+
 def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
@@ -303,6 +333,8 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
     with beat:
         for step in range(start, config.steps):
             _zero_grad(task)
+            if config.lr_final != 1:
+                _set_learning_rates(task, lr_multiplier(config, step))
             ok, terms = _guarded_step(task, step, generator, config, guards, scale)
             task.after_step(ok)
             done = step + 1
