@@ -1,6 +1,6 @@
-"""The loop's learning-rate decay (``LoopConfig.lr_final``): its shape, that the loop applies it, that a
-resumed run decays alike, that it lowers the noise floor of noisy gradients, and that its defaults
-leave finished outputs' fingerprints alone."""
+"""The loop's learning-rate decay (``LoopConfig.lr_final``, ``ops.engine.learning_rate``): its shape, that
+the loop applies it, that a resumed run decays alike, that it lowers the noise floor of noisy gradients,
+and that its defaults leave finished outputs' fingerprints alone."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ import pytest
 import torch
 from torch import nn
 
-from ops.engine.loop import LoopConfig, StepOutput, lr_multiplier, run_loop
+from ops.engine.learning_rate import lr_multiplier
+from ops.engine.loop import LoopConfig, StepOutput, run_loop
 from ops.pipeline.photo_run import stage_config_record
 from tests.test_optimise import Regression
 
@@ -24,14 +25,14 @@ def test_the_multiplier_holds_then_falls_by_a_half_cosine_to_lr_final() -> None:
     for _ in range(20):
         steps = int(rng.integers(10, 500))
         cfg = LoopConfig(steps, lr_final=float(rng.uniform(0.01, 0.9)), lr_decay_start=float(rng.uniform(0, 0.9)))
-        m = [lr_multiplier(cfg, s) for s in range(steps)]
+        m = [lr_multiplier(s, steps, cfg.lr_final, cfg.lr_decay_start) for s in range(steps)]
         start = cfg.lr_decay_start * steps
         assert all(v == 1.0 for s, v in enumerate(m) if s <= start)
         assert all(b <= a + 1e-12 for a, b in pairwise(m))  # never rises
         assert min(m) >= cfg.lr_final - 1e-12
         if steps - 1 > start:
             assert m[-1] == pytest.approx(cfg.lr_final)
-    assert {lr_multiplier(LoopConfig(50), s) for s in range(50)} == {1.0}  # the default: constant
+    assert {lr_multiplier(s, 50, 1.0, 0.5) for s in range(50)} == {1.0}  # the default: constant
 
 
 @pytest.mark.parametrize("bad", [{"lr_final": 0.0}, {"lr_final": 1.5}, {"lr_decay_start": 1.0},
@@ -62,7 +63,7 @@ CFG = LoopConfig(40, checkpoint_every=8, log_every=4, grad_clip=None, lr_final=0
 def test_the_loop_sets_every_rate_from_its_configured_one() -> None:
     task = _Recording(2)
     run_loop(task, CFG, torch.Generator().manual_seed(0), "test")
-    assert task.rates == pytest.approx([1e-2 * lr_multiplier(CFG, s) for s in range(40)])
+    assert task.rates == pytest.approx([1e-2 * lr_multiplier(s, 40, 0.1, 0.25) for s in range(40)])
     assert task.opt.param_groups[0]["base_lr"] == 1e-2
 
 

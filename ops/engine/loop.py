@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from assets_store.checkpoints import Checkpoints
 from morpheus_core.runtime.device_skip import nonfinite, step_or_skip
+from ops.engine.learning_rate import lr_multiplier, set_learning_rates
 from ops.engine.progress import Heartbeat, ProgressEvent, ProgressFn
 
 _AUTOCAST: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
@@ -87,7 +88,7 @@ class LoopConfig:
     ``lr_decay_start`` × ``steps``; 1 (the default, the paper's constant rates): no decay. A diffusion
     prior's gradient is a different guess at every noise draw, so at a constant rate the parameters keep
     wandering around what the priors agree on by an amount the rate sets; a decaying rate averages the
-    late guesses instead (``lr_multiplier``)."""
+    late guesses instead (``ops.engine.learning_rate``)."""
     lr_decay_start: float = 0.5
     """Share of the schedule after which the learning rates decay towards ``lr_final``."""
 
@@ -112,17 +113,6 @@ class LoopConfig:
         if not (0 < self.lr_final <= 1 and 0 <= self.lr_decay_start < 1):
             raise ValueError(f"lr_final must be in (0, 1] and lr_decay_start in [0, 1), got {self.lr_final} and "
                              f"{self.lr_decay_start}")
-
-
-def lr_multiplier(config: LoopConfig, step: int) -> float:
-    """The learning rates' multiplier at ``step`` (0-based): 1 until ``lr_decay_start`` × ``steps``, then a half
-    cosine down to ``lr_final`` at the last step. A function of the step alone, so a resumed run decays alike."""
-    start = config.lr_decay_start * config.steps
-    last = config.steps - 1
-    if config.lr_final == 1 or step <= start or last <= start:
-        return 1.0
-    t = min(1.0, (step - start) / (last - start))
-    return config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t))
 
 
 @dataclass
@@ -263,14 +253,6 @@ def _zero_grad(task: StageTask) -> None:
         opt.zero_grad(set_to_none=True)
 
 
-def _set_learning_rates(task: StageTask, multiplier: float) -> None:
-    """Each parameter group's rate: its configured rate (kept in the group as ``base_lr``, so it travels
-    with the optimiser's state into checkpoints) × ``multiplier``."""
-    for opt in task.optimizers().values():
-        for group in opt.param_groups:
-            group["lr"] = group.setdefault("base_lr", group["lr"]) * multiplier
-
-
 def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
@@ -334,7 +316,8 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
         for step in range(start, config.steps):
             _zero_grad(task)
             if config.lr_final != 1:
-                _set_learning_rates(task, lr_multiplier(config, step))
+                set_learning_rates(task.optimizers().values(),
+                                   lr_multiplier(step, config.steps, config.lr_final, config.lr_decay_start))
             ok, terms = _guarded_step(task, step, generator, config, guards, scale)
             task.after_step(ok)
             done = step + 1
