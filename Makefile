@@ -103,10 +103,10 @@ postgres:
 	  fi; \
 	fi
 
-# Workers for pytest-xdist (TEST_WORKERS=auto: one per core; a test file stays on one worker, so a
-# module's shared fixture is built once). Default 0, one process: on 2 cores two workers measured
-# slower (20.2 vs 16.9 min; torch's threads oversubscribe the cores). Timings: docs/testing.md.
-TEST_WORKERS ?= 0
+# Workers for pytest-xdist (auto: one per core; TEST_WORKERS=0: one process). A test file stays on one
+# worker, so a module's shared fixture is built once; each worker's torch gets its share of the cores
+# (tests/conftest.py), without which two workers on 2 cores were slower than one. Timings: docs/testing.md.
+TEST_WORKERS ?= auto
 test: $(STAMP) browser postgres web-tools
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=10

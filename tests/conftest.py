@@ -20,6 +20,13 @@ from tests.tiny_models import write_all
 
 def pytest_configure(config: pytest.Config) -> None:
     seed_session()  # before xdist starts its workers: they inherit the seed through the environment
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        # Each worker gets its share of the cores, and so do the processes its tests start: torch's
+        # default of one thread per core in every worker oversubscribed 2 cores (docs/testing.md).
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(threads)
 
 
 def pytest_report_header(config: pytest.Config) -> str:
