@@ -43,7 +43,7 @@ from morpheus_core.runtime.triton_support import device_guard, load_triton
 triton, tl, _jit = load_triton()
 
 if TYPE_CHECKING:
-    from morpheus_core.geometry.hashgrid import LevelTables
+    from morpheus_core.geometry.hashgrid_layout import LevelTables
 
 _BLOCK = 128  # points per program: 4 warps of 32 threads, one point per thread
 _NUM_WARPS = 4

@@ -1,4 +1,5 @@
-"""Meshing of the inflated proxy (``priors.proxy.shape.InflatedProxy``): its SDF on a closed DMTet grid.
+"""Meshing of the inflated proxy (``priors.proxy.shape.InflatedProxy``, read through ``Silhouette``): its SDF
+on a closed DMTet grid.
 
 Marching tetrahedra on a DMTet grid with a closed boundary, so a frame-filling silhouette (cut by
 the image border) is capped at the grid and the mesh stays closed. Silhouette components too thin
@@ -10,19 +11,17 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
+from morpheus_core.cameras import OrbitConfig
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 from morpheus_core.geometry.tets import EDGE_OFFSETS
-
-if TYPE_CHECKING:
-    from morpheus_core.priors.proxy.shape import InflatedProxy
 
 # Grid vertices per SDF call: the grid-128 pipeline setting has 2.1M vertices, whose bilinear
 # lookups would otherwise allocate several (N, …) temporaries at once.
@@ -46,10 +45,26 @@ def _non_manifold_edges(mesh: Mesh) -> tuple[int, int]:
     return int((counts != 2).sum()), int(counts.size)
 
 
-def build_mesh(proxy: InflatedProxy) -> Mesh:
-    """The proxy's closed surface: its SDF meshed by marching tets on a closed DMTet grid."""
-    cfg = proxy.config
-    dmtet = DMTet(DMTetConfig(resolution=cfg.grid_resolution, half_extent=cfg.half_extent, close_boundary=True),
+class Silhouette(Protocol):
+    """What meshing reads of an inflated silhouette (``priors.proxy.shape.InflatedProxy`` is one)."""
+
+    device: torch.device
+    height: int
+    width: int
+    orbit: OrbitConfig
+    touches_border: bool
+    mask_array: np.ndarray
+    distance_px: np.ndarray
+
+    def sdf(self, points: Tensor) -> Tensor: ...
+
+    def pixel_coordinates(self, points: Tensor) -> Tensor: ...
+
+
+def build_mesh(proxy: Silhouette, grid_resolution: int, half_extent: float) -> Mesh:
+    """The proxy's closed surface: its SDF meshed by marching tets on a closed DMTet grid of ``grid_resolution``
+    cells per side spanning ±``half_extent``."""
+    dmtet = DMTet(DMTetConfig(resolution=grid_resolution, half_extent=half_extent, close_boundary=True),
                   device=proxy.device)
     grid = dmtet.grid_vertices
     values = torch.cat([proxy.sdf(grid[i:i + _SDF_CHUNK]) for i in range(0, grid.shape[0], _SDF_CHUNK)])
@@ -58,7 +73,7 @@ def build_mesh(proxy: InflatedProxy) -> Mesh:
     capped = int((values[dmtet.boundary] < 0).sum())
     if capped and not proxy.touches_border:
         warnings.warn(f"the inflated proxy reaches the grid boundary at {capped} vertices and is capped flat at "
-                      f"±{cfg.half_extent}; lower thickness or raise half_extent to keep its full depth",
+                      f"±{half_extent}; lower thickness or raise half_extent to keep its full depth",
                       RuntimeWarning, stacklevel=3)
     # DMTet caps these anyway (close_boundary); doing it here also keeps a sign change when
     # the shape fills the whole grid.
@@ -78,7 +93,7 @@ def build_mesh(proxy: InflatedProxy) -> Mesh:
     return mesh
 
 
-def _seed_components_between_vertices(proxy: InflatedProxy, dmtet: DMTet, values: Tensor, deform: Tensor) -> None:
+def _seed_components_between_vertices(proxy: Silhouette, dmtet: DMTet, values: Tensor, deform: Tensor) -> None:
     """Give every silhouette component that holds no inside grid vertex one, in place.
 
     A blob thinner than a grid cell can fall between the vertices and vanish from the mesh (or
@@ -90,7 +105,7 @@ def _seed_components_between_vertices(proxy: InflatedProxy, dmtet: DMTet, values
     alone, the vertex would sit at the flat edge of a lopsided star); when another solid is
     within two grid steps the vertex moves alone, leaving the neighbours' other tets intact.
     """
-    n_labels, labels = cv2.connectedComponents(proxy._mask_np.astype(np.uint8), connectivity=8)
+    n_labels, labels = cv2.connectedComponents(proxy.mask_array.astype(np.uint8), connectivity=8)
     grid, boundary = dmtet.grid_vertices, dmtet.boundary
 
     def label_of(points: Tensor) -> np.ndarray:
@@ -110,7 +125,7 @@ def _seed_components_between_vertices(proxy: InflatedProxy, dmtet: DMTet, values
     # Where to seed each component: the mean of its pixels within a hair of its maximal D, so a
     # symmetric speck whose maximum is a tie of 2–4 pixels is seeded at its true centre; one
     # of those pixels when the mean falls outside (a non-convex component with tied maxima).
-    dist = proxy._maps[proxy.device][0][0, 0].cpu().numpy().astype(np.float64)
+    dist = proxy.distance_px.astype(np.float64)
     peak = np.full(n_labels, -np.inf)
     np.maximum.at(peak, labels.ravel(), dist.ravel())
     top = (dist >= peak[labels] - 1e-3) & (labels > 0)

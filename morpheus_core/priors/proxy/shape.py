@@ -151,9 +151,12 @@ class InflatedProxy:
         if count == mask.size:
             raise EmptySilhouetteError("the reference photo's mask covers the whole image, so there is no silhouette "
                                        "to inflate; check the segmentation / the prepared reference")
-        self._mask_np = mask
+        self.mask_array = mask
+        """(H, W) bool silhouette (alpha ≥ 0.5), numpy."""
         self.touches_border = bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
         distance = _signed_distance(mask)
+        self.distance_px = distance
+        """(H, W) signed distance to the silhouette's edge in pixels, numpy."""
         self.dmax = float(distance.max())
         # World size of one pixel on the z = 0 plane (the vertical fov spans the image height).
         self.pixel_size = 2.0 * self.orbit.distance * math.tan(math.radians(self.orbit.fov_deg) / 2) / self.height
@@ -171,7 +174,7 @@ class InflatedProxy:
     @property
     def mask(self) -> Tensor:
         """(H, W) bool silhouette (alpha ≥ 0.5) on the proxy's device."""
-        return torch.from_numpy(self._mask_np).to(self.device)
+        return torch.from_numpy(self.mask_array).to(self.device)
 
     def _maps_on(self, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         if device not in self._maps:
@@ -244,7 +247,7 @@ class InflatedProxy:
         """The proxy's closed surface on the proxy's device (built on first use, cached, detached)."""
         if self._mesh is None:
             with torch.no_grad():
-                self._mesh = build_mesh(self)
+                self._mesh = build_mesh(self, self.config.grid_resolution, self.config.half_extent)
             self._meshes[self._mesh.vertices.device] = self._mesh
         return self._mesh
 
