@@ -231,3 +231,10 @@ def test_missing_usd_says_how_to_install(baked: BakedTexture, monkeypatch) -> No
     monkeypatch.setitem(sys.modules, "pxr", None)  # makes `from pxr import ...` raise ImportError
     with pytest.raises(ImportError, match="pip install usd-core"):
         usdz.encode_usdz(baked)
+
+
+def test_the_same_asset_gives_the_same_bytes(baked: BakedTexture) -> None:
+    first = usdz.encode_usdz(baked)
+    entries = zipfile.ZipFile(io.BytesIO(first)).infolist()
+    assert {info.date_time[0] for info in entries} == {1980}  # fixed stamps, not the clock's
+    assert usdz.encode_usdz(baked) == first

@@ -35,6 +35,7 @@ shader definitions, so the checker's shader rule crashes (OpenUSD#3983), and 25.
 from __future__ import annotations
 
 import io
+import os
 import tempfile
 import warnings
 import zipfile
@@ -49,6 +50,8 @@ from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 TEXTURE_NAME = "textures/basecolor.png"
 """Path of the packaged texture, relative to the root layer (and so inside the package)."""
+
+_ZIP_MTIME = 315_619_200  # 1980-01-02 00:00 UTC: a zip date is local time from 1980, so no time zone goes below it
 
 # ARKit profile (the old ComplianceChecker's arkit=True rules): what AR Quick Look can display.
 _ARKIT_PRIM_TYPES = frozenset({
@@ -221,6 +224,10 @@ def encode_usdz(baked: BakedTexture, name: str = "asset") -> bytes:
         layer_path = tmp_dir / f"{prim_name}.usdc"
         _author_stage(layer_path, arrays, prim_name)
         usdz_path = tmp_dir / f"{prim_name}.usdz"
+        # The zip writer stamps each entry with its file's modification time: a fixed one makes the package's
+        # bytes a function of the asset alone (the same run gives the same file, and its hash in the manifest).
+        for written in (layer_path, tmp_dir / TEXTURE_NAME):
+            os.utime(written, (_ZIP_MTIME, _ZIP_MTIME))
         # USD's zip writer stores (never compresses) and pads every file's data to 64 bytes.
         # UsdUtils.CreateNewARKitUsdzPackage would do too, but it renames the texture to "0/basecolor.png";
         # our layer is already one self-contained usdc, so writing the two files ourselves keeps the layout.
