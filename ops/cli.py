@@ -210,8 +210,9 @@ def report_command(args: argparse.Namespace) -> int:
             if done.files_merged:
                 print(f"compacted {done.files_merged} catalog files of {len(done.days)} past day(s)", file=sys.stderr)
         options = ReportOptions(page_dir=args.out.resolve().parent)
-        page = build_report(catalog, since=since, base_dir=base, options=options)
-        assets = asset_rows(catalog.scan(since).table).to_pylist()
+        scanned = catalog.scan(since)  # once, for the report and the gallery
+        page = build_report(catalog, since=since, base_dir=base, options=options, scanned=scanned)
+        assets = asset_rows(scanned.table).to_pylist()
     except CatalogError as exc:
         print(f"morpheus3d report: {exc}", file=sys.stderr)
         return 1

@@ -195,14 +195,18 @@ def test_an_empty_catalog_renders_a_page_saying_so(tmp_path: Path, browser) -> N
     assert browser.execute_script("return document.images.length") == 0
 
 
-def test_since_limits_the_rows(tmp_path: Path) -> None:
+def test_since_limits_the_rows(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     store = tmp_path / "store"
     store.mkdir()
     rows = build_store(store)
     out = tmp_path / "recent.html"
     cut = T0 + dt.timedelta(hours=5 * 8)  # rows 8.. are on or after this day
+    scans = []
+    scan = Catalog.scan
+    monkeypatch.setattr(Catalog, "scan", lambda self, *a, **k: scans.append(a) or scan(self, *a, **k))
     assert main(["report", "--catalog", str(Store(store).catalog_dir), "--store", str(store),
                  "--since", cut.date().isoformat(), "--out", str(out)]) == 0
+    assert len(scans) == 1  # the report and the gallery read the catalog once
     expected = sum(1 for r in rows if r["created_at"].date() >= cut.date())
     page = out.read_text()
     assert re.search(rf"<td>rows \(a photo in a run\)</td><td>{expected}</td>", page)

@@ -26,7 +26,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from assets_store.atomic import atomic_write_text
-from assets_store.catalog import Catalog, latest_rows
+from assets_store.catalog import Catalog, CatalogRead, latest_rows
 from ops.reporting.asset_metrics import asset_rows, metrics_section
 from ops.reporting.html import esc
 from ops.reporting.report_sections import (
@@ -77,12 +77,14 @@ def build_report(
     base_dir: Path | None = None,
     options: ReportOptions | None = None,
     now: dt.datetime | None = None,
+    scanned: CatalogRead | None = None,
 ) -> str:
     """The report page as a string. ``base_dir``: what relative paths in the rows are relative to (the store
-    root; default: the catalog folder's parent)."""
+    root; default: the catalog folder's parent). ``scanned``: the catalog's rows since ``since`` when the
+    caller has read them already (``catalog.scan(since)``; a large catalog is read once, not per page)."""
     options = options or ReportOptions()
     base = Path(base_dir) if base_dir is not None else catalog.root.parent
-    scanned = catalog.scan(since)
+    scanned = scanned if scanned is not None else catalog.scan(since)
     read = replace(scanned, table=count_work_once(current_stage_columns(scanned.table)))
     table = read.table
     latest = latest_rows(table) if table.num_rows and "photo_key" in table.column_names else table.slice(0, 0)
