@@ -201,8 +201,9 @@ def _qa(tmp: Path, nerf: list | None, glb: list, photo: list) -> tuple[dict, dic
     asset = _glb_of_spheres(tmp / "asset.glb", glb)
     reference = _photo_of(asset if photo == glb else _glb_of_spheres(tmp / "photo.glb", photo), tmp / "reference")
     (tmp / "qa").mkdir()
-    result = run_qa(reference, asset, tmp / "qa", QA, {}, device="cpu", nerf_dir=nerf_dir)
+    result, written = run_qa(reference, asset, tmp / "qa", QA, {}, device="cpu", nerf_dir=nerf_dir)
     report = read_report(tmp / "qa")
+    assert written == report  # what the stage passes on is what qa.json holds
     checks = {c["name"]: c for c in report.checks["qa"]}
     assert result.metrics["verdict"] == report.verdict
     return report.__dict__, checks

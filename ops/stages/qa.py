@@ -46,7 +46,7 @@ from morpheus_core.segmentation.part_silhouettes import (
     nerf_silhouettes,
     part_cameras,
 )
-from ops.engine.checks import ERROR, QA_FILE, WARN, CheckSpec, QACheck, QAReport, check, read_report, verdict
+from ops.engine.checks import ERROR, QA_FILE, WARN, CheckSpec, QACheck, QAReport, check, verdict
 from ops.engine.previews import save_strip, to_uint8
 from ops.engine.progress import Heartbeat
 from ops.engine.stage import Stage, StageContext, StageWork
@@ -209,8 +209,10 @@ def compare_with_nerf(asset: TexturedMesh, nerf_dir: Path | None, views: int, re
 
 def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
            upstream: dict[str, list[QACheck]], prior: str = "", device: str = "auto",
-           nerf_dir: Path | None = None, phase: Callable[[str], None] | None = None) -> StageResult:
-    """Measure the written GLB and gather every stage's checks into ``qa.json``.
+           nerf_dir: Path | None = None,
+           phase: Callable[[str], None] | None = None) -> tuple[StageResult, QAReport]:
+    """Measure the written GLB and gather every stage's checks into ``qa.json``; returns the stage's result
+    and the report written.
 
     Metrics: reference view (at ``eval_resolution``) PSNR and SSIM, overall and inside / outside
     the photo's mask, silhouette IoU; over a turntable of ``turntable_views``: high-frequency
@@ -295,7 +297,7 @@ def run_qa(reference_dir: Path, glb_path: Path, out_dir: Path, cfg: QAConfig,
                       _finite_json(metrics), prior, weighted=weighted)
     atomic_write_text(out_dir / QA_FILE, json.dumps(asdict(report), indent=2, sort_keys=True, default=str))
     summary = {k: v for k, v in _finite_json(metrics).items() if isinstance(v, (int, float, bool)) or v is None}
-    return StageResult({**summary, "verdict": decision, "failed_checks": len(reasons)}, "none (qa)", str(dev))
+    return StageResult({**summary, "verdict": decision, "failed_checks": len(reasons)}, "none (qa)", str(dev)), report
 
 
 def _part_checks(cfg: QAConfig, asset: Any, mask: torch.Tensor, components: int, nerf_dir: Path | None,
@@ -330,12 +332,11 @@ def _finite_json(metrics: dict[str, Any]) -> dict[str, Any]:
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in metrics.items()}
 
 
-def write_asset_viewer(out: Path, final_dir: Path, reference_dir: Path, export_dir: Path, key: str,
+def write_asset_viewer(out: Path, report: QAReport, final_dir: Path, reference_dir: Path, export_dir: Path, key: str,
                        export: dict[str, Any]) -> str | None:
-    """``viewer.html``: the web GLB at its real size, the photo, the dimensions and this verdict. Links are
-    relative to where the page will live (``final_dir``, beside the other stages' folders); the viewer's
+    """``viewer.html``: the web GLB at its real size, the photo, the dimensions and ``report``'s verdict. Links
+    are relative to where the page will live (``final_dir``, beside the other stages' folders); the viewer's
     script is vendored into the store once. Returns why the page cannot show the model, None when it can."""
-    report = read_report(out)
     photos = sorted(Path(reference_dir).glob("rgba_*.png"))
     up = os.path.relpath(export_dir, final_dir)
     page = ViewerPage(
@@ -360,10 +361,10 @@ def _build(ctx: StageContext, cfg: QAConfig) -> StageWork:
         upstream = {s: ctx.stage_checks(s, cfg) for s in producers}
         prior = ctx.upstream("texture").prior
         with Heartbeat(ctx.progress(), "qa", announce=True) as beat:  # one line at least every 10 s
-            result = run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
-                            ctx.device, nerf_dir, beat.set_phase)
+            result, report = run_qa(ctx.dir("reference"), ctx.dir("bake") / ASSET_GLB, out, cfg, upstream, prior,
+                                    ctx.device, nerf_dir, beat.set_phase)
         if "export" in producers:
-            missing = write_asset_viewer(out, ctx.dir("qa"), ctx.dir("reference"), ctx.dir("export"), ctx.key,
+            missing = write_asset_viewer(out, report, ctx.dir("qa"), ctx.dir("reference"), ctx.dir("export"), ctx.key,
                                          ctx.upstream("export").metrics)
             if missing:
                 result.notes.append(f"viewer.html cannot show the model: {missing}")
