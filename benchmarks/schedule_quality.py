@@ -95,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--records", type=Path, nargs="+", required=True, help="early_stop record files (JSON lines)")
     ap.add_argument("--a", default="paper/20", help="the reference schedule")
     ap.add_argument("--b", default="fast/20", help="the schedule judged against it")
+    ap.add_argument("--expect", type=int, choices=(-1, 0, 1), default=0,
+                    help="the claim judged: 0, b keeps a's quality (a flatness claim); 1, b beats a; -1, b is worse")
+    ap.add_argument("--source", default="issue: fewer, fuller steps", help="where the claim comes from")
     ap.add_argument("--speed", type=Path, nargs="*", default=[], help="paper_speed.py JSON results of both presets")
     ap.add_argument("--name", default="schedule_quality")
     ap.add_argument("--results", type=Path, default=RESULTS)
@@ -108,8 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     machines = sorted({r["machine"] for r in records if r.get("machine")})
     size = f"{args.a} vs {args.b}, stochastic oracle, {machines[0].split(',')[0]}"
     both = [r for r in rows if r["scene"] in {t["scene"] for t in table}]
-    by_seed = {s: [r for r in both if r["seed"] == s] for s in sorted({r["seed"] for r in both})}
-    finding = Finding(f"{args.b} keeps {args.a}'s quality", (args.a,), (args.b,), 0, "issue: fewer, fuller steps")
+    # The seeds both schedules ran on every compared scene (a longer schedule may have fewer).
+    seeds = sorted(set.intersection(*(set(t["seeds"]) for t in table)))
+    by_seed = {s: [r for r in both if r["seed"] == s] for s in seeds}
+    claim = {0: "keeps {a}'s quality", 1: "beats {a}", -1: "is worse than {a}"}[args.expect].format(a=args.a)
+    finding = Finding(f"{args.b} {claim}", (args.a,), (args.b,), args.expect, args.source)
     judged = judge_all(by_seed, size, (finding,), key="base")
     if judged:
         write_findings(args.results, judged)

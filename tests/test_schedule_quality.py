@@ -59,3 +59,17 @@ def test_no_shared_cells_is_an_error(tmp_path: Path) -> None:
     log.write_text(json.dumps(glb_record("paper/20", "mug", 0, 25.0)) + "\n")
     assert schedule_quality.main(["--records", str(log), "--results", str(tmp_path)]) == 1
     assert not (tmp_path / "schedule_quality.json").exists()
+
+
+def test_a_directional_claim_on_the_seeds_both_schedules_ran(tmp_path: Path) -> None:
+    rng = random.Random(fresh_seed())
+    records = _records(rng, {"mug": -1.5, "tin": -1.2, "box": -1.8, "gift": -1.4}, noise=0.2)  # fast/20 gains
+    records = [r for r in records if not (r["base"] == "paper/20" and r["seed"] == 2)]  # the longer one: 2 seeds
+    log = tmp_path / "q.records.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    assert schedule_quality.main(["--records", str(log), "--results", str(tmp_path), "--expect", "1",
+                                  "--source", "test", "--name", "sq"]) == 0
+    findings = json.loads((tmp_path / "findings.json").read_text())
+    assert {f["finding"] for f in findings} == {"fast/20 beats paper/20"}
+    assert {f["verdict"] for f in findings if f["metric"] == "novel_psnr"} == {"reproduced"}
+    assert all(f["seeds"] == [0, 1] for f in findings)
