@@ -52,21 +52,9 @@ STOPPING = ("nerf", "dmtet")
 _BENCH_CPU_HALF_PHASED = Schedule("bench-cpu/2-phased", "draft", steps=(75, 40, 75), overrides=(
     "texture.resolution=128", *(f'{s}.phases=[{{"until": 0.5, "resolution": {r}, "n_views": 4}}]'
                                 for s, r in (("nerf", 24), ("dmtet", 48), ("texture", 64)))))
-# -decay: the same schedule with every optimising stage's learning rates falling by a half cosine to a tenth
-# over its second half (``LoopConfig.lr_final``): does a decaying rate lift the noise floor that a stochastic
-# prior leaves at a constant rate, and do fewer steps then reach the longer constant-rate schedule?
-# bench-cpu/2 is the CPU benchmark's schedule with half its steps.
-_DECAY = tuple(f"{s}.loop.lr_final=0.1" for s in OPTIMISING)
-
-
-def _decayed(schedule: Schedule) -> Schedule:
-    return replace(schedule, label=f"{schedule.label}-decay", overrides=(*schedule.overrides, *_DECAY))
-
-
-_CONSTANT = (SIZES["cpu"].ablation, Schedule("bench-cpu/2", "draft", steps=(75, 40, 75), overrides=(
-    "texture.resolution=128",)), Schedule("paper/40", "paper", steps=(250, 125, 125)),
-    Schedule("paper/10", "paper", steps=(1000, 500, 500)))
-BASES = {s.label: s for s in (*SIZES["gpu"].timing, *_CONSTANT, *map(_decayed, _CONSTANT),
+BASES = {s.label: s for s in (SIZES["cpu"].ablation, *SIZES["gpu"].timing,
+                              Schedule("paper/40", "paper", steps=(250, 125, 125)),
+                              Schedule("paper/10", "paper", steps=(1000, 500, 500)),
                               Schedule("fast/20", "fast", steps=(125, 62, 62)),
                               _BENCH_CPU_HALF_PHASED)}
 METRICS = ("novel_psnr", "chamfer", "fscore")

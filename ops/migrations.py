@@ -38,5 +38,5 @@ RENAMED_ASSETS = {"nerf_field": "nerf", "dmtet_mesh": "dmtet", "refined_texture"
                   "qa_report": "qa"}
 """Dagster asset key before the renaming → stage id (``reference`` kept its key)."""
 
-ADDED_SETTINGS: dict[str, Any] = {"phases": [], "lr_final": 1.0, "lr_decay_start": 0.5}
-"""Setting name → its default as a config record holds it (render phases, learning-rate decay: 2026-12-07)."""
+ADDED_SETTINGS: dict[str, Any] = {"phases": []}
+"""Setting name → its default as a config record holds it (render phases: 2026-12-07)."""

@@ -35,7 +35,6 @@ from torch import Tensor, nn
 
 from assets_store.checkpoints import Checkpoints
 from morpheus_core.runtime.device_skip import nonfinite, step_or_skip
-from ops.engine.learning_rate import lr_multiplier, set_learning_rates
 from ops.engine.progress import Heartbeat, ProgressEvent, ProgressFn
 
 _AUTOCAST: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
@@ -83,14 +82,6 @@ class LoopConfig:
     """Share of the schedule every stage runs before it may stop."""
     early_stop_min_gain_db: float = 0.05
     """Gain (dB) of the best reference-view PSNR over the patience window that counts as still improving."""
-    lr_final: float = 1.0
-    """Every learning rate's multiplier at the last step, reached by a half cosine that starts at
-    ``lr_decay_start`` × ``steps``; 1 (the default, the paper's constant rates): no decay. A diffusion
-    prior's gradient is a different guess at every noise draw, so at a constant rate the parameters keep
-    wandering around what the priors agree on by an amount the rate sets; a decaying rate averages the
-    late guesses instead (``ops.engine.learning_rate``)."""
-    lr_decay_start: float = 0.5
-    """Share of the schedule after which the learning rates decay towards ``lr_final``."""
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -110,9 +101,6 @@ class LoopConfig:
                              f"{self.early_stop_patience} and {self.early_stop_min_share}")
         if not (math.isfinite(self.early_stop_min_gain_db) and self.early_stop_min_gain_db >= 0):
             raise ValueError(f"early_stop_min_gain_db must be finite and ≥ 0, got {self.early_stop_min_gain_db}")
-        if not (0 < self.lr_final <= 1 and 0 <= self.lr_decay_start < 1):
-            raise ValueError(f"lr_final must be in (0, 1] and lr_decay_start in [0, 1), got {self.lr_final} and "
-                             f"{self.lr_decay_start}")
 
 
 @dataclass
@@ -315,9 +303,6 @@ def run_loop(task: StageTask, config: LoopConfig, generator: torch.Generator, st
     with beat:
         for step in range(start, config.steps):
             _zero_grad(task)
-            if config.lr_final != 1:
-                set_learning_rates(task.optimizers().values(),
-                                   lr_multiplier(step, config.steps, config.lr_final, config.lr_decay_start))
             ok, terms = _guarded_step(task, step, generator, config, guards, scale)
             task.after_step(ok)
             done = step + 1
