@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from morpheus_core.geometry.mesh import safe_normalize
 from morpheus_core.runtime.devices import to_device
+from morpheus_core.vectors import safe_normalize
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from morpheus_core.priors.base import PixelSpacePrior
+from morpheus_core.guidance.prior_protocol import PixelSpacePrior
 
 # The real 2D prior runs at 64 px in CPU tests (512 in the pipeline) to keep them fast.
 RES_2D = 64

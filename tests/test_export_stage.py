@@ -14,8 +14,8 @@ from PIL import Image
 
 from morpheus_core.export.gltf import decode_glb, encode_glb
 from morpheus_core.export.gltf_validator import validator_available
-from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.export.web_glb import SizeBudgetError
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from ops.engine.viewer_page import ViewerPage, vendor_viewer, write_viewer
 from ops.intake.products import ProductsFileError
 from ops.reporting.gallery import gallery_html

@@ -76,7 +76,7 @@ def test_normal_smoothness_is_a_mean_over_elements() -> None:
 def test_hybrid_guidance_reference_term_has_the_official_weight() -> None:
     from morpheus_core.guidance.diffusion import NoiseSchedule
     from morpheus_core.guidance.hybrid import BandWeight, GuidanceConfig, PriorBinding, PriorTerm, hybrid_guidance
-    from morpheus_core.priors.base import PixelSpacePrior
+    from morpheus_core.guidance.prior_protocol import PixelSpacePrior
 
     class Zero(PixelSpacePrior):
         def predict_noise(self, noisy, t, condition, cfg_scale):

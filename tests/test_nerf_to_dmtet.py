@@ -10,7 +10,8 @@ from torch import Tensor
 
 from morpheus_core.geometry.marching_tets import EmptySurfaceError
 from morpheus_core.geometry.nerf import FieldSample
-from morpheus_core.geometry.nerf_to_dmtet import (
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
+from morpheus_core.nerf_to_dmtet import (
     ConversionConfig,
     box_occupancy,
     check_cameras,
@@ -18,7 +19,6 @@ from morpheus_core.geometry.nerf_to_dmtet import (
     mesh_silhouettes,
     silhouette_iou,
 )
-from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
 
 GRID = 32
 CELL = 2.0 / GRID

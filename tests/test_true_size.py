@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from morpheus_core.export.true_size import fit_true_size
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from ops.intake.products import ProductsFileError, products_for, read_products
 
 

@@ -17,7 +17,7 @@ pxr = pytest.importorskip("pxr", reason="usd-core is a declared dependency")
 from pxr import Sdf, Usd, UsdGeom, UsdShade  # noqa: E402
 
 from morpheus_core.export import usdz  # noqa: E402
-from morpheus_core.export.uv_bake import BakedTexture  # noqa: E402
+from morpheus_core.geometry.textured_mesh import BakedTexture  # noqa: E402
 
 
 def _icosphere_soup(rng: np.random.Generator, size: tuple[int, int] = (32, 32)) -> BakedTexture:

@@ -27,8 +27,8 @@ from PIL import Image, ImageDraw
 from scipy.spatial import cKDTree
 
 from morpheus_core.export.glb_geometry import EXT_MESHOPT, EXT_QUANTIZATION, meshopt_available
-from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.export.web_glb import EXT_WEBP, SizeBudgetError, encode_web_glb, write_web_glb
+from morpheus_core.geometry.textured_mesh import BakedTexture
 
 REPO = Path(__file__).resolve().parents[1]
 WEB_TOOLS = REPO / "tools" / "web" / "node_modules"

@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 
 Compression = Literal["auto", "meshopt", "none"]
 

@@ -1,4 +1,4 @@
-"""Export of a baked asset (``export.uv_bake.BakedTexture``) as GLB or OBJ + MTL + PNG.
+"""Export of a baked asset (``geometry.textured_mesh.BakedTexture``) as GLB or OBJ + MTL + PNG.
 
 ``encode_glb`` / ``encode_obj`` return bytes (for callers that write through the asset store; ``decode_glb``
 reads the GLB back);
@@ -15,7 +15,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 

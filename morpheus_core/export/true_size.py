@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 
 # Bounding-box axis of each dimension in the method's frame: x width, y height, z depth.
 AXES = {"height": 1, "width": 0, "depth": 2}

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 TEXTURE_NAME = "textures/basecolor.png"

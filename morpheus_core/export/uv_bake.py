@@ -32,6 +32,7 @@ from torch import Tensor
 
 from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.geometry.tet_surface import suggest_resolution
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from morpheus_core.render.raster import RasterConfig, interpolate_sparse, rasterize
 
 ColourField = Callable[[Tensor], Tensor]
@@ -72,23 +73,6 @@ class BakeConfig:
             raise ValueError(f"max_faces must be ≥ 4, got {self.max_faces}")
         if self.on_too_many_faces not in ("decimate", "raise"):
             raise ValueError(f"on_too_many_faces must be 'decimate' or 'raise', got {self.on_too_many_faces!r}")
-
-
-@dataclass(frozen=True)
-class BakedTexture:
-    """An unwrapped, textured mesh ready for export. Vertices are split along UV seams.
-
-    ``uvs`` (N, 2) with v up; ``texture`` (S, S, 3) uint8 with row 0 at v = 1; ``normals`` (N, 3)
-    smooth normals of the source mesh (continuous across seams); ``coverage``: fraction of texels
-    covered by charts; ``source_faces``: faces before any decimation."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    uvs: np.ndarray
-    normals: np.ndarray
-    texture: np.ndarray
-    coverage: float
-    source_faces: int
 
 
 def _surface_area(mesh: Mesh) -> float:

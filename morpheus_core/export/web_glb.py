@@ -72,7 +72,7 @@ from morpheus_core.export.glb_geometry import (
     encode_geometry,
     pad4,
 )
-from morpheus_core.export.uv_bake import BakedTexture
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from morpheus_core.runtime.atomic_io import atomic_write_bytes
 
 WEBP_QUALITIES: tuple[int, ...] = (90, 80, 70, 60, 50)

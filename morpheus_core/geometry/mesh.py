@@ -8,14 +8,7 @@ import torch
 from torch import Tensor
 
 from morpheus_core.runtime.gather import gather_rows
-
-# Normalising a zero-length normal (degenerate face, isolated vertex) must not produce NaN.
-_NORMAL_EPS = 1e-20
-
-
-def safe_normalize(v: Tensor, eps: float = _NORMAL_EPS) -> Tensor:
-    """v / |v| along the last dim; zero vectors stay zero and their gradient stays finite."""
-    return v * torch.rsqrt((v * v).sum(-1, keepdim=True).clamp_min(eps))
+from morpheus_core.vectors import safe_normalize
 
 
 class MeshIndexError(ValueError):

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from morpheus_core.geometry.field_heads import evaluate_heads
 from morpheus_core.geometry.hashgrid import HashGrid, HashGridConfig
-from morpheus_core.geometry.mesh import safe_normalize
+from morpheus_core.vectors import safe_normalize
 
 # exp(15) ≈ 3.3e6: the largest factor trunc_exp lets into a gradient.
 _TRUNC_EXP_MAX = 15.0

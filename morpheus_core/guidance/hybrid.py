@@ -28,7 +28,7 @@ from torch import Tensor
 from morpheus_core.guidance.diffusion import NoiseSchedule, TimestepRange, Weighting, sample_timesteps, work_dtype
 from morpheus_core.guidance.frequency import BandMask, filter_residual
 from morpheus_core.guidance.loss_balance import reference_loss
-from morpheus_core.priors.base import Prior
+from morpheus_core.guidance.prior_protocol import Prior
 from morpheus_core.runtime.devices import to_device
 
 Mode = Literal["sds", "vsd"]

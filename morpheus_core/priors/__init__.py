@@ -1,4 +1,4 @@
-"""Diffusion priors behind one protocol (see ``base.Prior``).
+"""Diffusion priors behind one protocol (see ``guidance.prior_protocol.Prior``).
 
 Real priors load from local folders only (``registry.ModelRegistry``): ``zero123.Zero123Prior``
 (3D prior), ``image2d.Image2DPrior`` (image-prompt 2D prior with canny ControlNet) and
@@ -6,6 +6,6 @@ Real priors load from local folders only (``registry.ModelRegistry``): ``zero123
 Import them from their modules: loading diffusers/transformers is deferred to first use.
 """
 
-from morpheus_core.priors.base import PixelSpacePrior, Prior
+from morpheus_core.guidance.prior_protocol import PixelSpacePrior, Prior
 
 __all__ = ["PixelSpacePrior", "Prior"]

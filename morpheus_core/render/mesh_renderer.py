@@ -21,11 +21,12 @@ import torch
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.geometry.mesh import Mesh, safe_normalize
+from morpheus_core.geometry.mesh import Mesh
 from morpheus_core.render.antialias import antialias
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.raster import Fragments, RasterConfig, interpolate_sparse, rasterize
 from morpheus_core.runtime.devices import filled_like
+from morpheus_core.vectors import safe_normalize
 
 ColourFn = Callable[[Tensor], Tensor]
 # (fragments, world points (N, 3)) -> colours (N, 3); see ``render_shaded``.

@@ -32,8 +32,8 @@ from PIL import Image
 from torch import Tensor
 
 from morpheus_core.cameras import Cameras
-from morpheus_core.export.uv_bake import BakedTexture
 from morpheus_core.geometry.mesh import Mesh
+from morpheus_core.geometry.textured_mesh import BakedTexture
 from morpheus_core.render.mesh_renderer import MeshRenderConfig, render_shaded
 from morpheus_core.render.output import RenderOutput
 from morpheus_core.render.raster import Fragments

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, make_dataclass, replace
 
 from morpheus_core.export.uv_bake import BakeConfig
 from morpheus_core.geometry.hashgrid import HashGridConfig
-from morpheus_core.geometry.nerf_to_dmtet import ConversionConfig
+from morpheus_core.nerf_to_dmtet import ConversionConfig
 from morpheus_core.render.volume import OccupancyGridConfig, VolumeRenderConfig
 from morpheus_core.runtime.execution import ExecutionConfig
 from morpheus_core.texture import TextureFieldConfig

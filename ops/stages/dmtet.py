@@ -26,7 +26,11 @@ from assets_store.hashing import file_sha256
 from morpheus_core.export.uv_bake import cluster_decimate
 from morpheus_core.geometry.marching_tets import EmptySurfaceError, NonFiniteFieldError
 from morpheus_core.geometry.mesh import Mesh, laplacian_smoothness, normal_consistency
-from morpheus_core.geometry.nerf_to_dmtet import (
+from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
+from morpheus_core.geometry.winding import winding_number
+from morpheus_core.guidance.loss_balance import mask_bce
+from morpheus_core.guidance.presets import DMTET_GUIDANCE, GuidanceSettings
+from morpheus_core.nerf_to_dmtet import (
     Conversion,
     ConversionConfig,
     Silhouettes,
@@ -34,10 +38,6 @@ from morpheus_core.geometry.nerf_to_dmtet import (
     mesh_silhouettes,
     silhouette_iou,
 )
-from morpheus_core.geometry.tet_surface import DMTet, DMTetConfig
-from morpheus_core.geometry.winding import winding_number
-from morpheus_core.guidance.loss_balance import mask_bce
-from morpheus_core.guidance.presets import DMTET_GUIDANCE, GuidanceSettings
 from morpheus_core.render.mesh_renderer import render_mesh, render_mesh_groups
 from morpheus_core.render.textured import load_textured, sample_surface
 from morpheus_core.runtime.devices import pick_device

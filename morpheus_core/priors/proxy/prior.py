@@ -22,7 +22,7 @@ from torch import Tensor
 from morpheus_core.color import rotate_hue
 from morpheus_core.guidance.diffusion import NoiseSchedule
 from morpheus_core.guidance.frequency import BandMask, filter_residual
-from morpheus_core.priors.base import PixelSpacePrior
+from morpheus_core.guidance.prior_protocol import PixelSpacePrior
 from morpheus_core.priors.proxy.denoiser_error import DenoiserError
 
 TargetFn = Callable[[Any], Tensor]

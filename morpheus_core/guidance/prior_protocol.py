@@ -1,4 +1,5 @@
-"""The interface every diffusion prior implements, real (Zero123, image-prompt 2D) or proxy."""
+"""The interface every diffusion prior implements, real (Zero123, image-prompt 2D) or proxy: what the guidance
+drives, so it lives with the guidance and the priors import it."""
 
 from __future__ import annotations
 
