@@ -104,3 +104,23 @@ def test_reduced_precision_inputs_are_encoded_in_fp32(device: torch.device) -> N
     out = grid(x.to(torch.bfloat16))
     assert out.dtype == torch.float32 and torch.isfinite(out).all()
     torch.testing.assert_close(out, ref)
+
+
+def test_the_backward_reusing_the_forward_s_corners_matches_finding_them_again() -> None:
+    from morpheus_core.geometry.hashgrid import eager_encode_backward, eager_encode_forward
+
+    seed = int(np.random.default_rng().integers(1 << 30))
+    g = torch.Generator().manual_seed(seed)
+    cfg = HashGridConfig(n_levels=8, log2_table_size=9, base_resolution=4, per_level_scale=1.6)
+    grid = HashGrid(cfg, generator=g)
+    with torch.no_grad():
+        grid.table.normal_(generator=g)
+    grid.set_active_levels(6)
+    x = torch.rand(500, 3, generator=g).requires_grad_()
+    grad_out = torch.randn(500, cfg.output_dim, generator=g)
+    out = grid(x)  # the autograd path: corners found once, kept for the backward
+    out.backward(grad_out)
+    tables, mask = grid.level_tables(), grid.level_mask
+    want = eager_encode_forward(x.detach(), grid.table.detach(), tables, mask)
+    want_gx, want_gt = eager_encode_backward(x.detach(), grid.table.detach(), tables, mask, grad_out, True, True)
+    assert torch.equal(out.detach(), want) and torch.equal(x.grad, want_gx) and torch.equal(grid.table.grad, want_gt)

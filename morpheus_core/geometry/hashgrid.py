@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from morpheus_core.geometry.hashgrid_layout import HashGridConfig, LevelTables
-from morpheus_core.runtime.devices import compiled_for
+from morpheus_core.runtime.devices import compile_enabled, compiled_for
 from morpheus_core.runtime.execution import current_execution
 from morpheus_core.runtime.triton_support import choose
 
@@ -75,8 +75,11 @@ def _row_indices(cell: Tensor, tables: LevelTables, base: Tensor | None = None) 
     dense = _corner_product(coords[:, :k] * tables.strides[:k].unsqueeze(-1), "add")
     # tcnn multiplies in uint32; the low 32 bits of the int64 product are the same number.
     hashed = _corner_product((coords[:, k:] * tables.primes.unsqueeze(-1)) & 0xFFFFFFFF, "xor")
-    idx = torch.cat((dense, hashed), 1)
-    rows = torch.remainder(idx, tables.rows.reshape(1, -1, 1)) + tables.offsets.reshape(1, -1, 1)
+    # Hashed levels hold 2^log2_table_size rows and their hashes are ≥ 0, so the modulo is a mask (cheaper on
+    # the CPU than a remainder, the same numbers).
+    idx = torch.cat((torch.remainder(dense, tables.rows[:k].reshape(1, -1, 1)),
+                     hashed & (tables.rows[k:].reshape(1, -1, 1) - 1)), 1)
+    rows = idx + tables.offsets.reshape(1, -1, 1)
     return rows if base is None else rows + base.reshape(-1, 1, 1)
 
 
@@ -85,25 +88,31 @@ def _axis_weights(frac: Tensor) -> Tensor:
     return torch.stack((1 - frac, frac), -1)
 
 
-def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
-                         base: Tensor | None = None) -> Tensor:
-    """(N, 3) points → (N, L·F) features in the table's dtype, by tensor ops: the Triton kernels' reference."""
+def corners(x: Tensor, tables: LevelTables, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Every point's 8 corners on every level: their table rows (N, L, 8) and the per-axis weights of the lower
+    and upper corner (N, L, 3, 2). The eager encode computes them once for its forward and backward."""
     cell, frac = _positions(x, tables)
-    idx = _row_indices(cell, tables, base)
-    weights = _corner_product(_axis_weights(frac), "mul").to(table.dtype)
+    return _row_indices(cell, tables, base), _axis_weights(frac)
+
+
+def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
+                         base: Tensor | None = None, found: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """(N, 3) points → (N, L·F) features in the table's dtype, by tensor ops: the Triton kernels' reference.
+    ``found``: ``corners(x, tables, base)`` when the caller has them."""
+    idx, axis_w = found if found is not None else corners(x, tables, base)
+    weights = _corner_product(axis_w, "mul").to(table.dtype)
     out = (table[idx] * weights.unsqueeze(-1)).sum(-2) * level_mask.reshape(1, -1, 1).to(table.dtype)
     return out.flatten(1)  # (N, L·F), also for N = 0
 
 
 def eager_encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor, grad_out: Tensor,
-                          want_x: bool, want_table: bool,
-                          base: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
-    """(grad_x, grad_table) of ``eager_encode_forward``, each None unless wanted (the hand-written backward)."""
-    cell, frac = _positions(x, tables)
-    idx = _row_indices(cell, tables, base)
+                          want_x: bool, want_table: bool, base: Tensor | None = None,
+                          found: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor | None, Tensor | None]:
+    """(grad_x, grad_table) of ``eager_encode_forward``, each None unless wanted (the hand-written backward).
+    ``found``: the forward's ``corners``, else they are computed again."""
+    idx, axis_w = found if found is not None else corners(x, tables, base)
     mask = level_mask.reshape(1, -1, 1).to(grad_out.dtype)
     g = grad_out.reshape(x.shape[0], level_mask.shape[0], table.shape[1]) * mask
-    axis_w = _axis_weights(frac)
     grad_table = None
     if want_table:
         weights = _corner_product(axis_w, "mul").to(g.dtype)
@@ -144,17 +153,26 @@ class _HashEncode(torch.autograd.Function):
         ctx.save_for_backward(x, level_mask, table)
         ctx.tables = tables
         ctx.kernels = kernels = triton_kernels(x, table)  # the backward uses the forward's choice
+        ctx.found = None
         if kernels is not None:
             return kernels.encode_forward(x, table, tables, level_mask)
-        return compiled_for(eager_encode_forward, x.device)(x, table, tables, level_mask)
+        if compile_enabled(x.device):  # one compiled graph each way; the backward finds the corners again
+            return compiled_for(eager_encode_forward, x.device)(x, table, tables, level_mask)
+        # Eager (the CPU): finding the corners costs as much as the gather, so the backward reuses them.
+        ctx.found = corners(x, tables)
+        return eager_encode_forward(x, table, tables, level_mask, found=ctx.found)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, level_mask, table = ctx.saved_tensors
         want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
         kernels = ctx.kernels
-        backward = kernels.encode_backward if kernels is not None else compiled_for(eager_encode_backward, x.device)
-        grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
+        if kernels is not None or ctx.found is None:
+            backward = kernels.encode_backward if kernels is not None else compiled_for(eager_encode_backward, x.device)
+            grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
+        else:
+            grad_x, grad_table = eager_encode_backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x,
+                                                       want_table, found=ctx.found)
         return grad_x, grad_table, None, None
 
 
