@@ -41,18 +41,14 @@ def _corner_product(per_axis: Tensor, combine: str) -> Tensor:
     """(..., 3, 2) per-axis values of the lower/upper corner → (..., 8) values of the 8 corners.
 
     Corner c = cx + 2·cy + 4·cz (bit d selects the upper corner on axis d); ``combine`` is how the
-    three axes meet: "mul" for trilinear weights, "add" for dense indices, "xor" for hashes.
+    three axes meet: "mul" for trilinear weights, "add" for dense indices, "xor" for hashes, always as
+    (z ∘ y) ∘ x. The six per-axis values are first laid out as contiguous planes: broadcasting over the
+    trailing 2 × 2 × 2 corner dims ran 3× slower on the CPU (inner loops of length 2), for the same numbers.
     """
-    x = per_axis[..., 0, :].unsqueeze(-2).unsqueeze(-2)  # (..., 1, 1, 2)
-    y = per_axis[..., 1, :].unsqueeze(-1).unsqueeze(-3)  # (..., 1, 2, 1)
-    z = per_axis[..., 2, :].unsqueeze(-1).unsqueeze(-1)  # (..., 2, 1, 1)
-    if combine == "mul":
-        out = z * y * x
-    elif combine == "add":
-        out = z + y + x
-    else:
-        out = z ^ y ^ x
-    return out.reshape(*per_axis.shape[:-2], 8)
+    op = {"mul": torch.mul, "add": torch.add, "xor": torch.bitwise_xor}[combine]
+    planes = per_axis.movedim((-2, -1), (0, 1)).contiguous()  # (3, 2, ...)
+    zy = [op(planes[2, cz], planes[1, cy]) for cz in (0, 1) for cy in (0, 1)]  # index 2·cz + cy
+    return torch.stack([op(zy[c >> 1], planes[0, c & 1]) for c in range(8)], -1)
 
 
 def _positions(x: Tensor, tables: LevelTables) -> tuple[Tensor, Tensor]:
@@ -101,7 +97,10 @@ def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_ma
     ``found``: ``corners(x, tables, base)`` when the caller has them."""
     idx, axis_w = found if found is not None else corners(x, tables, base)
     weights = _corner_product(axis_w, "mul").to(table.dtype)
-    out = (table[idx] * weights.unsqueeze(-1)).sum(-2) * level_mask.reshape(1, -1, 1).to(table.dtype)
+    corner_rows = table[idx]  # (N, L, 8, F)
+    # The weights expanded to the rows' shape first: the same products, without a broadcast over F.
+    out = (corner_rows * weights.unsqueeze(-1).expand_as(corner_rows).contiguous()).sum(-2)
+    out = out * level_mask.reshape(1, -1, 1).to(table.dtype)
     return out.flatten(1)  # (N, L·F), also for N = 0
 
 
