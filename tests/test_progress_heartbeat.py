@@ -14,6 +14,7 @@ import ops.engine.progress as progress_module
 import ops.stages.dmtet as dmtet_stage
 import ops.stages.qa as qa_stage
 from assets_store.store import Store
+from ops.engine.checks import QAReport
 from ops.engine.loop import LoopConfig, StepOutput, run_loop
 from ops.engine.progress import Heartbeat, ProgressEvent
 from ops.engine.stage_job import StageResult
@@ -132,10 +133,10 @@ def test_the_stage_outcome_reports_its_wall_time_and_the_conversion_beats(tmp_pa
 
 
 def test_qa_announces_its_measurements_and_beats(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    def slow_qa(*args, phase, **kwargs) -> StageResult:  # type: ignore[no-untyped-def]
+    def slow_qa(*args, phase, **kwargs) -> tuple[StageResult, QAReport]:  # type: ignore[no-untyped-def]
         phase("turntable views")
         slow_call(0.3)
-        return StageResult({"verdict": "pass"}, "none (qa)", "cpu")
+        return StageResult({"verdict": "pass"}, "none (qa)", "cpu"), QAReport("pass", [], {}, {}, "proxy")
 
     class Context:  # what the qa stage's body reads of a photo's run
         device = "cpu"
