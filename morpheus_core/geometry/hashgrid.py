@@ -84,6 +84,11 @@ def _axis_weights(frac: Tensor) -> Tensor:
     return torch.stack((1 - frac, frac), -1)
 
 
+def _rows_of(table: Tensor, idx: Tensor) -> Tensor:
+    """``table[idx]`` (..., F): ``index_select`` on the flat indices gathers the same rows in half the CPU time."""
+    return table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
+
+
 def corners(x: Tensor, tables: LevelTables, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Every point's 8 corners on every level: their table rows (N, L, 8) and the per-axis weights of the lower
     and upper corner (N, L, 3, 2). The eager encode computes them once for its forward and backward."""
@@ -97,7 +102,7 @@ def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_ma
     ``found``: ``corners(x, tables, base)`` when the caller has them."""
     idx, axis_w = found if found is not None else corners(x, tables, base)
     weights = _corner_product(axis_w, "mul").to(table.dtype)
-    corner_rows = table[idx]  # (N, L, 8, F)
+    corner_rows = _rows_of(table, idx)  # (N, L, 8, F)
     # The weights expanded to the rows' shape first: the same products, without a broadcast over F.
     out = (corner_rows * weights.unsqueeze(-1).expand_as(corner_rows).contiguous()).sum(-2)
     out = out * level_mask.reshape(1, -1, 1).to(table.dtype)
@@ -119,7 +124,7 @@ def eager_encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_m
         grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib.to(table.dtype))
     grad_x = None
     if want_x:
-        corner_dot = (table[idx].to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
+        corner_dot = (_rows_of(table, idx).to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
         slope = torch.tensor([-1.0, 1.0], dtype=x.dtype, device=x.device).expand_as(axis_w)
         grads = []
         for d in range(3):
