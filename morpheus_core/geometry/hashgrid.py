@@ -170,13 +170,13 @@ class _HashEncode(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, level_mask, table = ctx.saved_tensors
         want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
-        kernels = ctx.kernels
-        if kernels is not None or ctx.found is None:
-            backward = kernels.encode_backward if kernels is not None else compiled_for(eager_encode_backward, x.device)
-            grad_x, grad_table = backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
-        else:
-            grad_x, grad_table = eager_encode_backward(x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x,
-                                                       want_table, found=ctx.found)
+        args = (x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
+        if ctx.kernels is not None:
+            grad_x, grad_table = ctx.kernels.encode_backward(*args)
+        elif ctx.found is not None:  # eager: the forward's corners
+            grad_x, grad_table = eager_encode_backward(*args, found=ctx.found)
+        else:  # compiled: one graph each way
+            grad_x, grad_table = compiled_for(eager_encode_backward, x.device)(*args)
         return grad_x, grad_table, None, None
 
 
