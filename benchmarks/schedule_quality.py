@@ -4,11 +4,12 @@ Reads the records of fixed-schedule runs of ``benchmarks/early_stop.py`` (``--va
 stochastic oracle) of two schedules on the same scenes and pipeline seeds, e.g. ``paper/20`` and
 ``fast/20`` (both presets shortened alike, phases as fractions), and optionally the two presets'
 ``benchmarks/paper_speed.py`` results. Per scene: the exported GLB's novel-view PSNR, detail PSNR,
-F-score and Chamfer distance of each schedule (mean over seeds), their paired difference (fast −
-paper, seed by seed) and the seed spread (the larger of the two schedules' ranges over the seeds);
-a scene is ``within`` when the mean difference is no worse than the spread. The bar: every scene
-within the spread on GLB PSNR. The claim "fast keeps the paper's quality" is judged as the paper's
-findings are (``benchmarks/findings.py``, a flatness claim) and merged into ``findings.json``.
+F-score and Chamfer distance of each schedule (mean over seeds), their paired difference (b − a,
+seed by seed) and the seed spread (the larger of the two schedules' ranges over the seeds); a scene
+is ``within`` when the mean difference is no worse than the spread. The bar: every scene within the
+spread on GLB PSNR. The claim (``--expect``: 0, "b keeps a's quality", a flatness claim, the default;
+1, "b beats a"; −1, "b is worse") is judged as the paper's findings are (``benchmarks/findings.py``),
+on the seeds both schedules ran, and merged into ``findings.json``.
 
     python -m benchmarks.schedule_quality \\
         --records benchmarks/results/schedule_quality_h200_stochastic.records.jsonl \\
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import statistics
 import sys
 from pathlib import Path
@@ -123,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     write_results(args.results, args.name, {
         "title": f"{args.b} against {args.a}", "machine": "; ".join(machines), "wall_s": 0.0,
         "date": max(r["date"] for r in records if r.get("date")), "from_records": True,
-        "command": "python -m benchmarks.schedule_quality " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python -m benchmarks.schedule_quality " + shlex.join(argv if argv is not None else sys.argv[1:]),
         "rows": table, "speed": speed, "findings": judged, "about": __doc__.split("\n\n")[1].replace("\n", " ")},
         markdown(table, args.a, args.b, speed) + ("\n" + findings_markdown(judged) if judged else ""))
     return 0
