@@ -106,21 +106,41 @@ def test_reduced_precision_inputs_are_encoded_in_fp32(device: torch.device) -> N
     torch.testing.assert_close(out, ref)
 
 
-def test_the_backward_reusing_the_forward_s_corners_matches_finding_them_again() -> None:
-    from morpheus_core.geometry.hashgrid import eager_encode_backward, eager_encode_forward
-
+def _grad_case(active: int) -> tuple[HashGrid, torch.Tensor, torch.Tensor]:
     seed = int(np.random.default_rng().integers(1 << 30))
     g = torch.Generator().manual_seed(seed)
     cfg = HashGridConfig(n_levels=8, log2_table_size=9, base_resolution=4, per_level_scale=1.6)
     grid = HashGrid(cfg, generator=g)
     with torch.no_grad():
         grid.table.normal_(generator=g)
-    grid.set_active_levels(6)
-    x = torch.rand(500, 3, generator=g).requires_grad_()
-    grad_out = torch.randn(500, cfg.output_dim, generator=g)
+    grid.set_active_levels(active)
+    return grid, torch.rand(500, 3, generator=g).requires_grad_(), torch.randn(500, cfg.output_dim, generator=g)
+
+
+def test_the_backward_reusing_the_forward_s_corners_matches_finding_them_again() -> None:
+    from morpheus_core.geometry.hashgrid import eager_encode_backward, eager_encode_forward
+
+    grid, x, grad_out = _grad_case(8)
     out = grid(x)  # the autograd path: corners found once, kept for the backward
     out.backward(grad_out)
     tables, mask = grid.level_tables(), grid.level_mask
     want = eager_encode_forward(x.detach(), grid.table.detach(), tables, mask)
     want_gx, want_gt = eager_encode_backward(x.detach(), grid.table.detach(), tables, mask, grad_out, True, True)
     assert torch.equal(out.detach(), want) and torch.equal(x.grad, want_gx) and torch.equal(grid.table.grad, want_gt)
+
+
+def test_levels_not_yet_switched_on_are_skipped_without_changing_the_encoding() -> None:
+    """The CPU encode computes levels up to the last active one only; the masked levels still read as zeros."""
+    from morpheus_core.geometry.hashgrid import eager_encode_backward, eager_encode_forward, encoded_levels
+
+    grid, x, grad_out = _grad_case(5)
+    assert encoded_levels(grid.level_mask) == 5
+    out = grid(x)
+    out.backward(grad_out)
+    tables, mask = grid.level_tables(), grid.level_mask  # all 8 levels, the last three multiplied by 0
+    want = eager_encode_forward(x.detach(), grid.table.detach(), tables, mask)
+    want_gx, want_gt = eager_encode_backward(x.detach(), grid.table.detach(), tables, mask, grad_out, True, True)
+    assert torch.equal(out.detach(), want) and torch.equal(grid.table.grad, want_gt)
+    assert (out[:, 5 * 2:] == 0).all() and (grid.table.grad[tables.offsets[5]:] == 0).all()
+    # The position gradient sums five levels instead of five and three zeros: the same up to the sum's order.
+    torch.testing.assert_close(x.grad, want_gx, rtol=1e-6, atol=1e-6)

@@ -24,9 +24,11 @@ the fingerprints of existing stores.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from types import ModuleType
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from morpheus_core.geometry.hashgrid_layout import HashGridConfig, LevelTables
@@ -37,27 +39,33 @@ from morpheus_core.runtime.triton_support import choose
 _INIT_SCALE = 1e-4  # tcnn's uniform(−1e-4, 1e-4) table initialisation
 
 
-def _corner_product(per_axis: Tensor, combine: str) -> Tensor:
-    """(..., 3, 2) per-axis values of the lower/upper corner → (..., 8) values of the 8 corners.
+# Per-axis values are kept as planes: ``planes[d][c]`` is axis d's value (d = x, y, z) at the lower (c = 0) or
+# upper (c = 1) corner, an (N, L) tensor or a number. Laid out with the axes first, every elementwise pass runs
+# over long contiguous rows; with the 3 × 2 corner dims last they ran 3× slower on the CPU (inner loops of
+# length 2), for the same numbers.
+Planes = Sequence[Sequence[Tensor | float]]
 
-    Corner c = cx + 2·cy + 4·cz (bit d selects the upper corner on axis d); ``combine`` is how the
-    three axes meet: "mul" for trilinear weights, "add" for dense indices, "xor" for hashes, always as
-    (z ∘ y) ∘ x. The six per-axis values are first laid out as contiguous planes: broadcasting over the
-    trailing 2 × 2 × 2 corner dims ran 3× slower on the CPU (inner loops of length 2), for the same numbers.
-    """
-    op = {"mul": torch.mul, "add": torch.add, "xor": torch.bitwise_xor}[combine]
-    planes = per_axis.movedim((-2, -1), (0, 1)).contiguous()  # (3, 2, ...)
-    zy = [op(planes[2, cz], planes[1, cy]) for cz in (0, 1) for cy in (0, 1)]  # index 2·cz + cy
-    return torch.stack([op(zy[c >> 1], planes[0, c & 1]) for c in range(8)], -1)
+
+def _corner_product(planes: Planes, op: Callable[[Tensor, Tensor | float], Tensor]) -> Tensor:
+    """The 8 corners' values (N, L, 8) from per-axis planes. Corner c = cx + 2·cy + 4·cz (bit d selects the upper
+    corner on axis d); ``op`` is how the three axes meet: ``torch.mul`` for trilinear weights, ``torch.add`` for
+    dense indices, ``torch.bitwise_xor`` for hashes, always as (z ∘ y) ∘ x."""
+    zy = [op(planes[2][cz], planes[1][cy]) for cz in (0, 1) for cy in (0, 1)]  # index 2·cz + cy
+    return torch.stack([op(zy[c >> 1], planes[0][c & 1]) for c in range(8)], -1)
+
+
+def _with_upper(lower: Tensor, step: Tensor) -> Planes:
+    """Planes of the lower corners' values (3, N, L) and the upper ones', ``step`` (3, 1, L) more per axis."""
+    return [(lower[d], lower[d] + step[d]) for d in range(3)]
 
 
 def _positions(x: Tensor, tables: LevelTables) -> tuple[Tensor, Tensor]:
-    """Integer cell (N, L, 3) and fraction (N, L, 3) of every point on every level.
+    """Integer cell (3, N, L) and fraction (3, N, L) of every point on every level, per axis.
 
     Positions are formed in the input's dtype: float32 rounding of x·scale matches tcnn's own
     float arithmetic, float64 keeps gradcheck exact.
     """
-    pos = x.unsqueeze(-2) * tables.scale.to(x.dtype).unsqueeze(-1) + 0.5
+    pos = x.t().unsqueeze(-1) * tables.scale.to(x.dtype) + 0.5
     base = torch.floor(pos)
     return base.to(torch.int64), pos - base
 
@@ -66,22 +74,24 @@ def _row_indices(cell: Tensor, tables: LevelTables, base: Tensor | None = None) 
     """(N, L, 8) rows of the flat table holding each corner's features; ``base`` (N,): each point's
     first row in a table of several tables one after another (the reference for the kernels' row
     bases, ``hashgrid_triton.encode_forward``)."""
-    coords = cell.unsqueeze(-1) + tables.steps  # (N, L, 3, 2)
     k = tables.n_dense
-    dense = _corner_product(coords[:, :k] * tables.strides[:k].unsqueeze(-1), "add")
-    # tcnn multiplies in uint32; the low 32 bits of the int64 product are the same number.
-    hashed = _corner_product((coords[:, k:] * tables.primes.unsqueeze(-1)) & 0xFFFFFFFF, "xor")
-    # Hashed levels hold 2^log2_table_size rows and their hashes are ≥ 0, so the modulo is a mask (cheaper on
-    # the CPU than a remainder, the same numbers).
-    idx = torch.cat((torch.remainder(dense, tables.rows[:k].reshape(1, -1, 1)),
-                     hashed & (tables.rows[k:].reshape(1, -1, 1) - 1)), 1)
+    parts = []
+    if k > 0:  # dense: x + res·y + res²·z, wrapped at the level's size (x = 1 lies one past the grid)
+        strides = tables.strides[:k].t().unsqueeze(1)  # (3, 1, k)
+        lower = cell[:, :, :k] * strides  # (3, N, k)
+        dense = _corner_product(_with_upper(lower, strides), torch.add)
+        parts.append(torch.remainder(dense, tables.rows[:k].reshape(1, -1, 1)))
+    if k < tables.n_levels:
+        # tcnn hashes in uint32: the low 32 bits of the int64 products, xor-ed. Hashed levels hold
+        # 2^log2_table_size ≤ 2^30 rows, so the modulo is a mask of low bits (cheaper on the CPU than a
+        # remainder) and the same mask drops the high bits uint32 would have lost.
+        primes = tables.primes.reshape(3, 1, 1)
+        lower = cell[:, :, k:] * primes
+        hashed = _corner_product(_with_upper(lower, primes), torch.bitwise_xor)
+        parts.append(hashed & (tables.rows[k:].reshape(1, -1, 1) - 1))
+    idx = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
     rows = idx + tables.offsets.reshape(1, -1, 1)
     return rows if base is None else rows + base.reshape(-1, 1, 1)
-
-
-def _axis_weights(frac: Tensor) -> Tensor:
-    """(N, L, 3, 2): the lower corner's (1 − f) and the upper corner's f per axis."""
-    return torch.stack((1 - frac, frac), -1)
 
 
 def _rows_of(table: Tensor, idx: Tensor) -> Tensor:
@@ -90,10 +100,11 @@ def _rows_of(table: Tensor, idx: Tensor) -> Tensor:
 
 
 def corners(x: Tensor, tables: LevelTables, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Every point's 8 corners on every level: their table rows (N, L, 8) and the per-axis weights of the lower
-    and upper corner (N, L, 3, 2). The eager encode computes them once for its forward and backward."""
+    """Every point's 8 corners on every level: their table rows (N, L, 8) and the weight planes of the lower and
+    upper corner per axis (3, 2, N, L): 1 − f and f. The eager encode computes them once for its forward and
+    backward."""
     cell, frac = _positions(x, tables)
-    return _row_indices(cell, tables, base), _axis_weights(frac)
+    return _row_indices(cell, tables, base), torch.stack((1 - frac, frac), 1)
 
 
 def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
@@ -101,7 +112,7 @@ def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_ma
     """(N, 3) points → (N, L·F) features in the table's dtype, by tensor ops: the Triton kernels' reference.
     ``found``: ``corners(x, tables, base)`` when the caller has them."""
     idx, axis_w = found if found is not None else corners(x, tables, base)
-    weights = _corner_product(axis_w, "mul").to(table.dtype)
+    weights = _corner_product(axis_w, torch.mul).to(table.dtype)
     corner_rows = _rows_of(table, idx)  # (N, L, 8, F)
     # The weights expanded to the rows' shape first: the same products, without a broadcast over F.
     out = (corner_rows * weights.unsqueeze(-1).expand_as(corner_rows).contiguous()).sum(-2)
@@ -119,21 +130,31 @@ def eager_encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_m
     g = grad_out.reshape(x.shape[0], level_mask.shape[0], table.shape[1]) * mask
     grad_table = None
     if want_table:
-        weights = _corner_product(axis_w, "mul").to(g.dtype)
+        weights = _corner_product(axis_w, torch.mul).to(g.dtype)
         contrib = (g.unsqueeze(-2) * weights.unsqueeze(-1)).reshape(-1, table.shape[1])
         grad_table = torch.zeros_like(table).index_add_(0, idx.reshape(-1), contrib.to(table.dtype))
     grad_x = None
     if want_x:
         corner_dot = (_rows_of(table, idx).to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
-        slope = torch.tensor([-1.0, 1.0], dtype=x.dtype, device=x.device).expand_as(axis_w)
         grads = []
         for d in range(3):
             # ∂w/∂f_d: axis d contributes its slope (∓1), the other axes their weights.
-            per_axis = torch.where(torch.arange(3, device=x.device).reshape(1, 1, 3, 1) == d, slope, axis_w)
-            grads.append((corner_dot * _corner_product(per_axis, "mul")).sum(-1))  # (N, L)
+            per_axis = [(-1.0, 1.0) if a == d else axis_w[a] for a in range(3)]
+            grads.append((corner_dot * _corner_product(per_axis, torch.mul)).sum(-1))  # (N, L)
         grad_pos = torch.stack(grads, -1)
         grad_x = (grad_pos * tables.scale.to(x.dtype).reshape(1, -1, 1)).sum(-2)
     return grad_x, grad_table
+
+
+def encoded_levels(level_mask: Tensor) -> int:
+    """How many levels, from the first, the eager CPU encode computes: up to the last active one. Levels
+    past it (progressive masking switches the fine ones on late) output zeros and get no gradient, so
+    skipping them changes no number; a fifth of the draft NeRF stage's encode. Elsewhere all levels:
+    reading the mask would wait for the device."""
+    if level_mask.device.type != "cpu":
+        return level_mask.shape[0]
+    active = torch.nonzero(level_mask)
+    return int(active[-1]) + 1 if active.numel() else level_mask.shape[0]
 
 
 def triton_kernels(x: Tensor, table: Tensor) -> ModuleType | None:
@@ -163,8 +184,11 @@ class _HashEncode(torch.autograd.Function):
         if compile_enabled(x.device):  # one compiled graph each way; the backward finds the corners again
             return compiled_for(eager_encode_forward, x.device)(x, table, tables, level_mask)
         # Eager (the CPU): finding the corners costs as much as the gather, so the backward reuses them.
-        ctx.found = corners(x, tables)
-        return eager_encode_forward(x, table, tables, level_mask, found=ctx.found)
+        ctx.encoded = n = encoded_levels(level_mask)
+        part = tables.first(n)
+        ctx.found = corners(x, part)
+        out = eager_encode_forward(x, table, part, level_mask[:n], found=ctx.found)
+        return out if n == level_mask.shape[0] else F.pad(out, (0, (level_mask.shape[0] - n) * table.shape[1]))
 
     @staticmethod
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
@@ -173,8 +197,11 @@ class _HashEncode(torch.autograd.Function):
         args = (x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
         if ctx.kernels is not None:
             grad_x, grad_table = ctx.kernels.encode_backward(*args)
-        elif ctx.found is not None:  # eager: the forward's corners
-            grad_x, grad_table = eager_encode_backward(*args, found=ctx.found)
+        elif ctx.found is not None:  # eager: the forward's corners, on the levels it encoded
+            n = ctx.encoded
+            grad_x, grad_table = eager_encode_backward(
+                x, table, ctx.tables.first(n), level_mask[:n], grad_out[:, :n * table.shape[1]].contiguous(),
+                want_x, want_table, found=ctx.found)
         else:  # compiled: one graph each way
             grad_x, grad_table = compiled_for(eager_encode_backward, x.device)(*args)
         return grad_x, grad_table, None, None

@@ -4,6 +4,7 @@ encoder needs (``LevelTables``): the eager encoder (``hashgrid``) and the Triton
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -84,3 +85,18 @@ class LevelTables:
         self.strides = torch.stack((torch.ones_like(res), res, res * res), -1)  # (L, 3)
         self.primes = torch.tensor(PRIMES, dtype=torch.int64, device=device)
         self.steps = torch.tensor([0, 1], dtype=torch.int64, device=device)
+
+    @property
+    def n_levels(self) -> int:
+        return int(self.scale.shape[0])
+
+    def first(self, n: int) -> LevelTables:
+        """The tables of levels 0..n−1 only: their rows keep their offsets in the whole table, so an encode
+        on them reads and writes the same rows as the whole grid's levels 0..n−1 do."""
+        if not 1 <= n <= self.n_levels:
+            raise ValueError(f"a level prefix must hold 1 to {self.n_levels} levels, got {n}")
+        part = copy.copy(self)
+        part.n_dense = min(self.n_dense, n)
+        part.scale, part.rows, part.offsets, part.strides = (t[:n] for t in (self.scale, self.rows, self.offsets,
+                                                                             self.strides))
+        return part
