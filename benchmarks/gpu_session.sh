@@ -11,7 +11,7 @@
 #   e.g. "before:1 after:1,4"; carry outputs/gpu_refs (prepared on the CPU machine:
 #   `python -c "from benchmarks.paper_speed import *; prepare_references(Path('outputs/gpu_refs'), preset('paper', ['device=cpu']))"`).
 #   SPEED_TESTS=1 first runs the CUDA tests of the speed work. Results and profiles -> $OUT.
-# early_stop: benchmarks/early_stop.py on CUDA (ES_SCHEDULES, ES_SCENES, ES_JOBS, ES_NAME), results -> $OUT.
+# early_stop: benchmarks/early_stop.py on CUDA (ES_SCHEDULES, ES_SCENES, ES_JOBS, ES_NAME, ES_ARGS), results -> $OUT.
 # heads: the CUDA tests of the fused field heads, the NeRF render and the mesh renderer, then the NeRF stage of
 #   paper_speed.py with MORPHEUS_FIELD_MLP=eager and auto (HEADS_BATCHES, default "1 4 8"); carry outputs/gpu_refs.
 #   (The heads' launch-size sweep is its own command: python -m benchmarks.field_heads_kernel --tag h200.)
@@ -62,7 +62,8 @@ if [ "$mode" = early_stop ]; then
   # call cut short by its time limit still brings back what it finished (--from-records merges).
   name=${ES_NAME:-early_stop_h200}
   [ -f "benchmarks/results/$name.records.jsonl" ] && cp "benchmarks/results/$name.records.jsonl" "$out/"  # go on from it
-  early_stop_run "$name" /tmp/es "$out/early_stop.log" --schedules "${ES_SCHEDULES:-draft}"
+  # shellcheck disable=SC2086  # ES_ARGS: more options, e.g. "--stop-rule reference --variants early"
+  early_stop_run "$name" /tmp/es "$out/early_stop.log" --schedules "${ES_SCHEDULES:-draft}" ${ES_ARGS:-}
   exit 0
 fi
 if [ "$mode" = curve ]; then

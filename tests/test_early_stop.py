@@ -12,10 +12,12 @@ import pytest
 import torch
 
 from assets_store.hashing import config_hash
+from assets_store.runlog import read_runlog
 from assets_store.store import Store
+from morpheus_core.cameras import reference_camera
 from ops.engine.batch import BatchTask
 from ops.engine.config_tree import to_dict
-from ops.engine.early_stop import EARLY_STOP_FIELDS, converged, whole_schedule_record
+from ops.engine.early_stop import EARLY_STOP_FIELDS, SIDES_METRIC, SideWatch, converged, whole_schedule_record
 from ops.engine.guided_task import RenderedStep
 from ops.engine.loop import LoopConfig, run_loop
 from ops.pipeline.runner import Pipeline, stages_until
@@ -115,10 +117,10 @@ class _StubTask:
         image = torch.rand(1, 3, 4, 4)
         return RenderedStep(None, image, image, torch.zeros(()))  # type: ignore[arg-type]
 
-    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig, metric: str) -> bool:
-        return converged(history, done, config, metric)
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig, prefix: str) -> bool:
+        return converged(history, done, config, prefix + "ref_psnr")
 
-    def evaluate(self) -> dict[str, float]:
+    def evaluate(self, done: int) -> dict[str, float]:
         return {"ref_psnr": 1.0}
 
     def state(self) -> dict[str, Any]:
@@ -137,7 +139,7 @@ def test_a_batch_stops_each_object_on_its_own_log_and_ends_when_all_have() -> No
                for i, (f, r) in enumerate(zip(flat, rising, strict=True))]
     assert not batch.stop_early(history, 60, LOOP)
     assert batch.stopped == {0: 60}
-    assert set(batch.evaluate()) == {"1/ref_psnr"}
+    assert set(batch.evaluate(60)) == {"1/ref_psnr"}
     live, _ = batch._render_all(61)
     assert live == [1] and (tasks[0].renders, tasks[1].renders) == (0, 1)
     # A restore of an older state keeps the stop; a later plateau of the other object ends the batch.
@@ -160,7 +162,9 @@ def test_whole_schedule_records_drop_only_the_early_stop_settings() -> None:
     assert config_hash(whole_schedule_record(other)) == config_hash(whole) != config_hash(other)
 
 
-FORCE_STOP = ("early_stop=true", "early_stop_min_share=0", "early_stop_patience=0.01", "early_stop_min_gain_db=1000")
+# The reference-view rule alone, set to stop at the first row it may.
+FORCE_STOP = ("early_stop=true", "early_stop_min_share=0", "early_stop_patience=0.01", "early_stop_min_gain_db=1000",
+              "early_stop_watch_sides=false")
 
 
 HOLD_LEVELS = "nerf.model.grid.update_steps=100"  # the tiny NeRF's last hash-grid levels never switch on
@@ -213,3 +217,76 @@ def test_a_batch_records_each_object_s_stop(tmp_path: Path) -> None:
         m = manifest(store, key, "dmtet")
         assert m.metrics["batch_size"] == 2 and m.metrics["stopped_early"] is True
         assert m.metrics["steps_run"] + m.metrics["steps_saved"] == cfg.dmtet.loop.steps
+
+
+def _watch_drifts(frames: list[torch.Tensor], window: int = 4) -> list[float]:
+    watch = SideWatch(window, reference_camera())
+    return [watch.observe(i + 1, f)[SIDES_METRIC] for i, f in enumerate(frames)]
+
+
+def test_the_side_watch_tells_drift_from_a_random_walk_from_settled_jitter() -> None:
+    g = torch.Generator().manual_seed(int(np.random.default_rng().integers(1 << 30)))
+    shape, n = (3, 3, 64, 64), 4  # four log intervals per window
+    start, direction = torch.rand(shape, generator=g), torch.randn(shape, generator=g) * 0.01
+    drifting = [start + i * direction + 1e-4 * torch.randn(shape, generator=g) for i in range(12)]
+    walk = [start]
+    for _ in range(11):
+        walk.append(walk[-1] + 0.01 * torch.randn(shape, generator=g))
+    settled = [start + 0.01 * torch.randn(shape, generator=g) for _ in range(12)]
+    for frames, lo, hi in ((drifting, 0.9 * n, 1.1 * n), (walk, 0.8, 1.2), (settled, 0.8 / n, 1.2 / n)):
+        drifts = _watch_drifts(frames, n)
+        assert all(np.isnan(drifts[:n]))  # fewer than a window of intervals: nothing to say yet
+        assert all(lo < d < hi for d in drifts[n:]), drifts
+    frozen = _watch_drifts([start] * 8, n)
+    assert frozen[n:] == [0.0] * (8 - n)  # renders that no longer change at all have settled
+    nan = start.clone()
+    nan[0, 0, 0, 0] = float("nan")
+    assert np.isnan(SideWatch(n, reference_camera()).observe(1, nan)[SIDES_METRIC])
+
+
+def test_the_side_watch_keeps_one_window_and_resumes_from_its_state() -> None:
+    g = torch.Generator().manual_seed(int(np.random.default_rng().integers(1 << 30)))
+    frames = [torch.rand(3, 3, 8, 8, generator=g) for _ in range(10)]
+    whole = SideWatch(6, reference_camera())
+    expected = [whole.observe(3 * (i + 1), f) for i, f in enumerate(frames)]
+    assert len(whole.rows) == 3  # the anchor at or before the window's start and the rows after it
+    first = SideWatch(6, reference_camera())
+    for i, f in enumerate(frames[:5]):
+        first.observe(3 * (i + 1), f)
+    resumed = SideWatch(6, reference_camera())
+    resumed.load_state(first.state())
+    assert [resumed.observe(3 * (i + 6), f) for i, f in enumerate(frames[5:])] == expected[5:]
+
+
+def test_the_reference_rule_waits_for_the_sides_when_they_are_watched() -> None:
+    history = _history([20.0] * 12)  # the reference view has plateaued
+    for drift, stops in ((3.5, False), (1.0, True), (0.3, True), (float("nan"), False)):
+        rows = [*history[:-1], {**history[-1], "3/" + SIDES_METRIC: drift}]
+        assert converged(rows, 60, LOOP, "ref_psnr", "3/" + SIDES_METRIC) is stops
+    assert not converged(history, 60, LOOP, "ref_psnr", SIDES_METRIC)  # no column: not known to have settled
+    assert converged(history, 60, replace(LOOP, early_stop_watch_sides=False), "ref_psnr", SIDES_METRIC)
+    assert converged(history, 60, LOOP, "ref_psnr", None)  # a task without side views: the reference decides
+
+
+@pytest.mark.parametrize("frozen", [False, True])
+def test_a_stage_watching_its_sides_stops_at_the_first_row_they_have_settled(tmp_path: Path, frozen: bool) -> None:
+    """The reference rule is set to agree at every row: the side views decide. Learning rates of 0 freeze the
+    mesh, so its sides settle as soon as the window has filled; trained, they still drift in the tiny run."""
+    watch = ("early_stop=true", "early_stop_min_share=0", "early_stop_patience=0.5", "early_stop_min_gain_db=1000")
+    still = [f"dmtet.{lr}=0" for lr in ("lr_sdf", "lr_deform", "lr_grid", "lr_mlp")] if frozen else []
+    cfg = tiny_config(*[f"dmtet.loop.{o}" for o in watch], *still, dmtet=16)
+    store = Store(tmp_path / "store")
+    outcome = Pipeline(store, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug")], stages_until("dmtet"))[0]
+    assert outcome.error is None, outcome.error
+    rows = read_runlog(store.stage_dir("mug", "dmtet") / "runlog.parquet")
+    window = round(0.5 * cfg.dmtet.loop.steps)
+    assert all(r[SIDES_METRIC] is None for r in rows if r["step"] < rows[0]["step"] + window)  # no anchor yet
+    assert all(r["sides_change"] is not None for r in rows[1:])
+    settled = [r["step"] for r in rows if r[SIDES_METRIC] is not None and r[SIDES_METRIC] <= 1.0
+               and r["step"] < cfg.dmtet.loop.steps]
+    m = manifest(store, "mug", "dmtet")
+    assert m.metrics["stopped_early"] is bool(settled) is frozen
+    assert m.metrics["steps_run"] == (settled[0] if settled else cfg.dmtet.loop.steps)
+    assert rows[-1]["step"] == m.metrics["steps_run"]
+    if frozen:
+        assert rows[-1][SIDES_METRIC] == 0.0 and any("side views" in n for n in m.notes)

@@ -6,6 +6,8 @@ import json
 import random
 from pathlib import Path
 
+import pytest
+
 import benchmarks.early_stop as bench
 from benchmarks.early_stop import BASES, run
 
@@ -41,3 +43,22 @@ def test_cli_exits_nonzero_when_a_cell_failed(tmp_path: Path, monkeypatch) -> No
     code = bench.main(["--schedules", "bench-cpu", "--scenes", "mug", "--seeds", "0", "--variants", "early",
                        "--work", str(tmp_path / "w"), "--results", str(tmp_path), "--name", "x"])
     assert code == 1 and not (tmp_path / "x.records.jsonl").exists()
+
+
+def test_early_runs_carry_their_stop_rule_and_one_records_file_holds_one_rule(tmp_path: Path, monkeypatch) -> None:
+    schedules: list[str] = []
+
+    def fake_run(scenes, schedules_, device, work, eval_cfg, oracle):
+        schedules.append(" ".join(schedules_[0].overrides))
+        return [{"scene": scenes[0].name, "points": [{"stage": "bake", "novel_psnr": random.uniform(15, 25)}]}]
+
+    monkeypatch.setattr(bench, "run_error_time", fake_run)
+    log, base = tmp_path / "rule.records.jsonl", BASES["bench-cpu"]
+    records, _ = run(["mug"], [base], [0], "cpu", tmp_path / "work", None, 1, log, (False, True), rule="reference")
+    assert [r.get("stop_rule") for r in records] == [None, "reference"]
+    assert "early_stop_watch_sides" not in schedules[0] and "*.loop.early_stop_watch_sides=false" in schedules[1]
+    with pytest.raises(ValueError, match="another --name"):
+        run(["mug"], [base], [1], "cpu", tmp_path / "work", None, 1, log, (True,), rule="sides")
+    assert len(log.read_text().splitlines()) == 2  # nothing appended under the second rule
+    assert bench.variant_schedule(base, 0, True).label.endswith(".early.s0")
+    assert bench.variant_schedule(base, 0, True, "reference").label.endswith(".early-ref.s0")

@@ -71,7 +71,7 @@ class Regression:
         self.net.load_state_dict(state["net"])
         self.opt.load_state_dict(state["opt"])
 
-    def evaluate(self) -> dict[str, float]:
+    def evaluate(self, done: int) -> dict[str, float]:
         with torch.no_grad():
             mse = float((self.net(self.x) - self.y).pow(2).mean())
         return {"full_mse": mse, "fit_db": -10.0 * math.log10(max(mse, 1e-12))}

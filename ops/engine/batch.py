@@ -143,13 +143,13 @@ class BatchTask:
         # Likewise a converged object stays stopped (at its first stop step) through a restore.
         self.stopped = {int(i): int(s) for i, s in {**state.get("stopped", {}), **self.stopped}.items()}
 
-    def evaluate(self) -> dict[str, float]:
+    def evaluate(self, done: int) -> dict[str, float]:
         return {f"{i}/{k}": v for i, t in enumerate(self.tasks) if i not in self.stopped
-                for k, v in t.evaluate().items()}
+                for k, v in t.evaluate(done).items()}
 
     def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig) -> bool:
         for i in range(len(self.tasks)):
-            if i not in self.stopped and self.tasks[i].stop_early(history, done, config, f"{i}/ref_psnr"):
+            if i not in self.stopped and self.tasks[i].stop_early(history, done, config, f"{i}/"):
                 self.stopped[i] = done
         return len(self.stopped) == len(self.tasks)
 

@@ -23,7 +23,7 @@ from morpheus_core.guidance.hybrid import GuidanceOutput, hybrid_guidance
 from morpheus_core.guidance.loss_balance import scaled_total
 from morpheus_core.guidance.presets import GuidanceSettings
 from morpheus_core.render.output import RenderOutput
-from ops.engine.early_stop import converged
+from ops.engine.early_stop import METRIC, SIDE_VIEW_SIZE, SIDES_METRIC, SideWatch, converged, window_steps
 from ops.engine.loop import LoopConfig, StepOutput
 from ops.engine.priors import PriorSuite
 from ops.engine.render_phases import RenderSchedule, StepShape
@@ -61,9 +61,12 @@ class GuidedTask(ABC):
 
     def __init__(self, target: ReferenceTarget, suite: PriorSuite, guidance: GuidanceSettings,
                  renders: RenderSchedule, modules: dict[str, nn.Module], groups: list[dict[str, Any]],
-                 device: torch.device) -> None:
+                 device: torch.device, loop: LoopConfig) -> None:
         self.target, self.suite, self.device = target, suite, device
         self.renders = renders
+        # The held-out views cost three small renders a log row: only where they can stop the stage.
+        self.sides = SideWatch(window_steps(loop), target.camera) if loop.early_stop and loop.early_stop_watch_sides \
+            else None
         self._targets = {target.resolution: target}
         self.modules = modules
         # The loop's device-side guards skip a step with a non-finite render (its prior outputs or its
@@ -108,24 +111,37 @@ class GuidedTask(ABC):
 
     def state(self) -> dict[str, Any]:
         return {**{name: m.state_dict() for name, m in self.modules.items()},
-                "opt": self.opt.state_dict(), "priors": self.suite.state()}
+                "opt": self.opt.state_dict(), "priors": self.suite.state(),
+                **({"sides": self.sides.state()} if self.sides is not None else {})}
 
     def load_state(self, state: Mapping[str, Any]) -> None:
         for name, m in self.modules.items():
             m.load_state_dict(state[name])
         self.opt.load_state_dict(state["opt"])
         self.suite.load_state(state["priors"])
+        if self.sides is not None and "sides" in state:
+            self.sides.load_state(state["sides"])
 
-    def evaluate(self) -> dict[str, float]:
-        with torch.no_grad():
-            return {"ref_psnr": reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)}
+    @torch.no_grad()
+    def ref_psnr(self) -> float:
+        """PSNR (dB) of the deterministic reference-view render against the photo."""
+        return reference_psnr(self.render_eval(self.target.camera).rgb_chw(), self.target)
+
+    def evaluate(self, done: int) -> dict[str, float]:
+        """The log row's measurements: the reference-view PSNR and, when the sides are watched, their change."""
+        out = {METRIC: self.ref_psnr()}
+        if self.sides is not None:
+            with torch.no_grad():
+                out.update(self.sides.observe(done, self.render_eval(self.sides.cameras, SIDE_VIEW_SIZE).rgb_chw()))
+        return out
 
     def last_phase(self, step: int) -> bool:
         """Whether the stage's own schedule has reached its last phase by ``step``: a stage never
         stops inside a coarse render phase (the NeRF stage adds its hash-grid levels)."""
         return step >= self.renders.final_from()
 
-    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig,
-                   metric: str = "ref_psnr") -> bool:
-        """``ops.engine.early_stop.converged`` on the ``metric`` column, once in the last phase."""
-        return self.last_phase(done) and converged(history, done, config, metric)
+    def stop_early(self, history: list[dict[str, Any]], done: int, config: LoopConfig, prefix: str = "") -> bool:
+        """``ops.engine.early_stop.converged`` on this task's columns (``prefix``: its batch index's), once in the
+        last phase."""
+        sides = prefix + SIDES_METRIC if self.sides is not None else None
+        return self.last_phase(done) and converged(history, done, config, prefix + METRIC, sides)

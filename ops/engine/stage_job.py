@@ -41,9 +41,11 @@ def loop_notes(result: LoopResult, loop: LoopConfig) -> list[str]:
     """What people should know about how the loop ended."""
     if result.stopped_at is None:
         return []
+    sides = " and the held-out side views moved no more coherently than a random walk" \
+        if loop.early_stop_watch_sides else ""
     return [f"stopped at step {result.stopped_at:,} of {result.schedule_steps:,}: the reference-view PSNR gained "
             f"less than {loop.early_stop_min_gain_db:g} dB over the last {loop.early_stop_patience:.0%} of the "
-            f"schedule (--set <stage>.loop.early_stop=false runs every step)"]
+            f"schedule{sides} (--set <stage>.loop.early_stop=false runs every step)"]
 
 
 @dataclass

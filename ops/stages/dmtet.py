@@ -141,7 +141,7 @@ class DMTetTask(GuidedTask):
             {"params": [dmtet.deform], "lr": cfg.lr_deform},
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
-        ], device)
+        ], device, cfg.loop)
 
     def mesh(self) -> Mesh:
         try:
@@ -179,9 +179,9 @@ class DMTetTask(GuidedTask):
         r = size or self.cfg.resolution
         return render_mesh(self.mesh(), cameras, r, r, self.texture)
 
-    def evaluate(self) -> dict[str, float]:
+    def evaluate(self, done: int) -> dict[str, float]:
         try:
-            return super().evaluate()
+            return super().evaluate(done)
         except BadStep:
             return {"ref_psnr": float("nan")}
 

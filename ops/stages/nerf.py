@@ -92,7 +92,7 @@ class NerfTask(GuidedTask):
             {"params": list(self.field.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(self.field.density_mlp.parameters()) + list(self.field.albedo_mlp.parameters()),
              "lr": cfg.lr_mlp},
-        ], device)
+        ], device, cfg.loop)
         # Every render setting of the config reaches both renders; only what a render is for differs.
         self.eval_render = replace(cfg.render, stratified=False, with_normals=False)
         cfg.render.sample_buffer_on(device)  # a buffer this device cannot have fails here, not at the first step
@@ -173,7 +173,7 @@ def start_nerf(reference_dir: Path, out_dir: Path, cfg: NerfStageConfig, priors:
         save_module(out_dir / NERF_FILE, task.field, cfg.model, {"occupancy": task.occupancy.density})
         save_stage_preview(out_dir, reference_dir, task.render_eval, cfg.preview_size, dev)
         write_log(out_dir, result)
-        metrics = loop_metrics(result) | {"ref_psnr": task.evaluate()["ref_psnr"],
+        metrics = loop_metrics(result) | {"ref_psnr": task.ref_psnr(),
                                           "occupied_fraction": round(task.occupancy.occupied_fraction, 4)}
         if task.budget is not None:  # under ``graphed``, each resize captured the buffer's graph again
             metrics["sample_buffer_resizes"] = task.budget.resizes

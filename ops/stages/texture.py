@@ -74,7 +74,7 @@ class TextureTask(GuidedTask):
         super().__init__(target, suite, cfg.guidance, RenderSchedule.of(cfg), {"texture": texture}, [
             {"params": list(texture.encoding.parameters()), "lr": cfg.lr_grid},
             {"params": list(texture.mlp.parameters()), "lr": cfg.lr_mlp},
-        ], device)
+        ], device, cfg.loop)
 
     def render_step(self, step: int, generator: torch.Generator) -> RenderedStep:
         shape = self.shape(step)
@@ -111,7 +111,7 @@ def start_texture(reference_dir: Path, dmtet_dir: Path, out_dir: Path, cfg: Text
     suite = suite or build_suite(priors, dev, reference_dir, object_id, cfg.guidance.roles, cfg.guidance.vsd_roles)
     try:
         task = TextureTask(cfg, target, suite, mesh, texture, dev)
-        before = task.evaluate()["ref_psnr"]
+        before = task.ref_psnr()
     except BaseException:
         suite.close()
         raise
