@@ -144,3 +144,16 @@ def test_levels_not_yet_switched_on_are_skipped_without_changing_the_encoding() 
     assert (out[:, 5 * 2:] == 0).all() and (grid.table.grad[tables.offsets[5]:] == 0).all()
     # The position gradient sums five levels instead of five and three zeros: the same up to the sum's order.
     torch.testing.assert_close(x.grad, want_gx, rtol=1e-6, atol=1e-6)
+
+
+def test_the_table_gradient_is_autograd_s_bit_for_bit() -> None:
+    """The hand-written backward sums each row's terms as autograd's gather backward does (on the CPU by one
+    bincount per feature), so the table gradients are equal, not only close; many points share rows here."""
+    from morpheus_core.geometry.hashgrid import eager_encode_backward, eager_encode_forward
+
+    grid, x, grad_out = _grad_case(6)
+    table = grid.table.detach().clone().requires_grad_()
+    tables, mask = grid.level_tables(), grid.level_mask
+    eager_encode_forward(x.detach(), table, tables, mask).backward(grad_out)
+    _, hand = eager_encode_backward(x.detach(), table.detach(), tables, mask, grad_out, False, True)
+    assert torch.equal(table.grad, hand) and table.grad.abs().sum() > 0
