@@ -290,3 +290,36 @@ def test_a_stage_watching_its_sides_stops_at_the_first_row_they_have_settled(tmp
     assert rows[-1]["step"] == m.metrics["steps_run"]
     if frozen:
         assert rows[-1][SIDES_METRIC] == 0.0 and any("side views" in n for n in m.notes)
+
+
+def test_a_stage_killed_while_watching_its_sides_resumes_to_the_same_stop(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The held-out renders of the window travel in the checkpoint: without them the resumed run would have no
+    anchor for the window and stop later. Frozen learning rates make the uninterrupted stop come at the first row
+    with a full window (step 9 of 16: rows every 2 steps from 1, a window of 8)."""
+    from ops.stages.dmtet import DMTetTask
+
+    watch = ("early_stop=true", "early_stop_min_share=0", "early_stop_patience=0.5", "early_stop_min_gain_db=1000")
+    still = [f"dmtet.{lr}=0" for lr in ("lr_sdf", "lr_deform", "lr_grid", "lr_mlp")]
+    cfg = tiny_config(*[f"dmtet.loop.{o}" for o in watch], *still, dmtet=16)
+    assert (cfg.dmtet.loop.log_every, cfg.dmtet.loop.checkpoint_every) == (2, 4)
+    whole_store, store = Store(tmp_path / "whole"), Store(tmp_path / "killed")
+    assert Pipeline(whole_store, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug")], stages_until("dmtet"))[0].error is None
+    original = DMTetTask.render_step
+
+    def killed_at_6(self: DMTetTask, step: int, generator: torch.Generator) -> RenderedStep:
+        if step == 6:
+            raise _Kill("killed at step 6, after the checkpoint of step 4")
+        return original(self, step, generator)
+
+    monkeypatch.setattr(DMTetTask, "render_step", killed_at_6)
+    outcome = Pipeline(store, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug")], stages_until("dmtet"))[0]
+    assert outcome.error is not None and "killed at step 6" in outcome.error
+    monkeypatch.setattr(DMTetTask, "render_step", original)
+    assert Pipeline(store, cfg, "tiny").run([(PHOTOS / "mug.jpg", "mug")], stages_until("dmtet"))[0].error is None
+    whole, resumed = manifest(whole_store, "mug", "dmtet"), manifest(store, "mug", "dmtet")
+    assert resumed.metrics["resumed_from_step"] == 4
+    assert whole.metrics["steps_run"] == 9 and resumed.metrics["stopped_early"] is True
+    assert resumed.metrics["steps_run"] + resumed.metrics["resumed_from_step"] == 9
+    logs = [read_runlog(s.stage_dir("mug", "dmtet") / "runlog.parquet") for s in (whole_store, store)]
+    assert [(r["step"], r[SIDES_METRIC]) for r in logs[0]] == [(r["step"], r[SIDES_METRIC]) for r in logs[1]]
