@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 
-from benchmarks.early_stop import BASES, RESULTS, oracle_work, variant_schedule
+from benchmarks.early_stop import BASES, RESULTS, STOPPING, oracle_work, variant_schedule
 from benchmarks.oracle import OracleConfig
 from benchmarks.quality import SIZES, machine, worker_init, write_results
 from benchmarks.scene_eval import EvalConfig, Reconstruction, evaluate, glb_output, mesh_output, novel_cameras
@@ -61,7 +61,8 @@ def bake_cell(record: dict[str, Any], variants: dict[str, tuple[str, ...]], devi
     """Every variant's bake of one finished (schedule, scene, seed) run, each scored and appended to
     ``log`` as it finishes; returns how many were written."""
     oracle = OracleConfig.named(record.get("oracle", "stochastic"))
-    schedule = variant_schedule(BASES[record["base"]], record["seed"], bool(record["early_stop"]))
+    schedule = variant_schedule(BASES[record["base"]], record["seed"], bool(record["early_stop"]),
+                                record.get("stop_rule", "reference"), tuple(record.get("stop_stages", STOPPING)))
     root = oracle_work(work, oracle)
     store = schedule_store(root, schedule)
     scene = make_scenes(0, (record["scene"],))[0]

@@ -65,12 +65,17 @@ STOP_RULES = ("sides", "reference")
 or on the reference view alone (``*.loop.early_stop_watch_sides=false``, the rule of the earlier results)."""
 
 
-def variant_schedule(base: Schedule, seed: int, early: bool, rule: str = "sides") -> Schedule:
+def variant_schedule(base: Schedule, seed: int, early: bool, rule: str = "sides",
+                     stages: tuple[str, ...] = STOPPING) -> Schedule:
+    """The run of one cell: the fixed schedule, or early stopping in ``stages`` under ``rule``. Early runs under
+    the reference rule in the default stages keep the store label they had before the side views existed."""
     cfg = base.config("cpu")
     logs = tuple(f"{s}.loop.log_every={max(1, getattr(cfg, s).loop.steps // 40)}" for s in OPTIMISING)
-    stops = tuple(f"{s}.loop.early_stop={str(early and s in STOPPING).lower()}" for s in OPTIMISING)
+    stops = tuple(f"{s}.loop.early_stop={str(early and s in stages).lower()}" for s in OPTIMISING)
     sides = (f"*.loop.early_stop_watch_sides={str(rule == 'sides').lower()}",) if early else ()
-    kind = ("early" if rule == "sides" else "early-ref") if early else "fixed"
+    kind = "fixed"
+    if early:
+        kind = "early" + ("-sides" if rule == "sides" else "") + ("" if stages == STOPPING else "-" + "+".join(stages))
     label = f"{base.label.replace('/', '-')}.{kind}.s{seed}"
     return replace(base, label=label, overrides=(*base.overrides, *logs, *stops, *sides, f"seed={seed}"))
 
@@ -94,7 +99,8 @@ def oracle_work(work: Path, oracle: OracleConfig) -> Path:
 
 def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str, work: Path, eval_cfg: EvalConfig,
         jobs: int, log: Path, variants: tuple[bool, ...] = (False, True),
-        oracle: OracleConfig | None = None, rule: str = "sides") -> tuple[list[dict[str, Any]], list[str]]:
+        oracle: OracleConfig | None = None, rule: str = "sides",
+        stages: tuple[str, ...] = STOPPING) -> tuple[list[dict[str, Any]], list[str]]:
     """Every cell not yet in ``log``, ``jobs`` at a time; each finished record is appended to ``log``
     (JSON lines) at once, so a run cut short by a time limit keeps what it finished and the next
     run with the same log goes on from there. A cell that raises is reported (its traceback on
@@ -106,11 +112,12 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
     for scene in by_name.values():  # written once here: the workers would race on the same photo
         photo_path(scene, work / "photos")
     records = [json.loads(line) for line in log.read_text().splitlines() if line] if log.is_file() else []
-    # Records from before the side views were watched stopped on the reference view alone.
-    rules = {r.get("stop_rule", "reference") for r in records if r["early_stop"]}
-    if rules - {rule}:
-        raise ValueError(f"{log} holds early runs under the stop rule {sorted(rules)}, not {rule!r}: "
-                         "give these runs another --name")
+    # Records from before the side views were watched stopped on the reference view alone, in the default stages.
+    rules = {(r.get("stop_rule", "reference"), tuple(r.get("stop_stages", STOPPING))) for r in records
+             if r["early_stop"]}
+    if rules - {(rule, stages)}:
+        raise ValueError(f"{log} holds early runs under the stop rule and stages {sorted(rules)}, not "
+                         f"{(rule, stages)}: give these runs another --name")
     finished = {(r["base"], r["scene"], r["seed"], r["early_stop"]) for r in records}
     cells = [(base, seed, early, name) for base in bases for name in scenes for seed in seeds
              for early in variants if (base.label, name, seed, early) not in finished]
@@ -124,19 +131,19 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
         try:
             result = outcome()
         except Exception:  # one broken cell must not cost the records of the cells still running
-            failed.append(f"{variant_schedule(base, seed, early, rule).label} {name}")
+            failed.append(f"{variant_schedule(base, seed, early, rule, stages).label} {name}")
             print(f"FAILED {failed[-1]}:\n{traceback.format_exc()}", file=sys.stderr, flush=True)
             return
         rec = {**result[0], "base": base.label, "seed": seed, "early_stop": early, "oracle": oracle.kind,
-               **({"stop_rule": rule} if early else {}),
+               **({"stop_rule": rule, "stop_stages": list(stages)} if early else {}),
                "machine": where,
                "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-               "steps": _steps(work, variant_schedule(base, seed, early, rule), name)}
+               "steps": _steps(work, variant_schedule(base, seed, early, rule, stages), name)}
         records.append(rec)
         with log.open("a", encoding="utf-8") as fh:
             fh.write(json.dumps(rec, default=str) + "\n")
 
-    args = [([by_name[name]], [variant_schedule(base, seed, early, rule)], device, work, eval_cfg, oracle)
+    args = [([by_name[name]], [variant_schedule(base, seed, early, rule, stages)], device, work, eval_cfg, oracle)
             for base, seed, early, name in cells]
     if jobs <= 1:
         for cell, a in zip(cells, args, strict=True):
@@ -238,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop-rule", choices=STOP_RULES, default="sides",
                     help="the early runs' rule: sides (the reference view and the held-out side views, the "
                          "default) or reference (the reference view alone, as in the earlier results)")
+    ap.add_argument("--stop-stages", default=",".join(STOPPING),
+                    help=f"the stages the early runs may stop, comma-separated, of {OPTIMISING}")
     ap.add_argument("--from-records", type=Path, nargs="*", default=None,
                     help="summarise these JSON-lines record files (of earlier, possibly cut-short runs) instead")
     args = ap.parse_args(argv)
@@ -250,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     if not variants or not set(args.variants.split(",")) <= {"fixed", "early"}:
         ap.error(f"--variants takes fixed, early or fixed,early; got {args.variants!r}")
     bases = [BASES[s] for s in args.schedules.split(",")]
+    stages = tuple(s for s in args.stop_stages.split(",") if s)
+    if not stages or not set(stages) <= set(OPTIMISING):
+        ap.error(f"--stop-stages takes stages of {OPTIMISING}; got {args.stop_stages!r}")
     scenes, seeds = [s for s in args.scenes.split(",") if s], [int(s) for s in args.seeds.split(",") if s]
     eval_cfg = SIZES["gpu" if args.device == "cuda" else "cpu"].eval
     name = args.name or f"early_stop_{'h200' if args.device == 'cuda' else 'cpu'}"
@@ -262,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         records, failed = run(scenes, bases, seeds, args.device, args.work, eval_cfg, args.jobs,
                               args.results / f"{name}.records.jsonl", variants, OracleConfig.named(args.oracle),
-                              args.stop_rule)
+                              args.stop_rule, stages)
         if failed:
             print(f"{len(failed)} cells failed (tracebacks above), left out: {failed}", file=sys.stderr)
         if len(variants) == 1 or not records:

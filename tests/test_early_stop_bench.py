@@ -56,9 +56,14 @@ def test_early_runs_carry_their_stop_rule_and_one_records_file_holds_one_rule(tm
     log, base = tmp_path / "rule.records.jsonl", BASES["bench-cpu"]
     records, _ = run(["mug"], [base], [0], "cpu", tmp_path / "work", None, 1, log, (False, True), rule="reference")
     assert [r.get("stop_rule") for r in records] == [None, "reference"]
+    assert records[1]["stop_stages"] == ["nerf", "dmtet"]
     assert "early_stop_watch_sides" not in schedules[0] and "*.loop.early_stop_watch_sides=false" in schedules[1]
     with pytest.raises(ValueError, match="another --name"):
         run(["mug"], [base], [1], "cpu", tmp_path / "work", None, 1, log, (True,), rule="sides")
     assert len(log.read_text().splitlines()) == 2  # nothing appended under the second rule
-    assert bench.variant_schedule(base, 0, True).label.endswith(".early.s0")
-    assert bench.variant_schedule(base, 0, True, "reference").label.endswith(".early-ref.s0")
+    assert bench.variant_schedule(base, 0, True).label.endswith(".early-sides.s0")
+    # The reference rule in the default stages keeps the stores of the records from before the side views.
+    assert bench.variant_schedule(base, 0, True, "reference").label.endswith(".early.s0")
+    texture = bench.variant_schedule(base, 0, True, "sides", ("texture",))
+    assert texture.label.endswith(".early-sides-texture.s0")
+    assert "texture.loop.early_stop=true" in texture.overrides and "nerf.loop.early_stop=false" in texture.overrides
