@@ -1,10 +1,10 @@
 """Early stopping on and off: steps and minutes saved per scene, and the GLB metrics against the seed spread.
 
 Each (schedule, scene, seed) runs the whole pipeline twice with the oracle priors, once with the
-fixed schedule (``*.loop.early_stop=false``, the default) and once with early stopping in the NeRF
-and DMTet stages (``nerf.loop.early_stop=true``, ``dmtet.loop.early_stop=true``; the texture stage
-stays on its schedule: ``early_stop_texture_h200.md`` shows why), and scores every stage's output
-as ``benchmarks/error_time.py`` does. A difference counts as within
+fixed schedule (``*.loop.early_stop=false``, the default) and once with early stopping in the stages
+the title names (by default the NeRF and DMTet stages, ``--stop-stages``; the texture stage stays on
+its schedule: ``early_stop_texture_h200.md`` shows why) under its rule (``--stop-rule``), and scores
+every stage's output as ``benchmarks/error_time.py`` does. A difference counts as within
 the spread when the early-stopping mean over seeds lies within the fixed path's min–max over seeds.
 The stages log their reference-view PSNR about 40 times per stage here (``log_every`` = steps/40),
 as the presets do (100–200 rows per stage), so the rule sees a real curve.
@@ -158,6 +158,15 @@ def run(scenes: list[str], bases: list[Schedule], seeds: list[int], device: str,
     return records, failed
 
 
+def early_runs(records: list[dict[str, Any]]) -> str:
+    """How the records' early runs stopped, in words (records from before the side views: the reference rule)."""
+    kinds = sorted({(r.get("stop_rule", "reference"), tuple(r.get("stop_stages", STOPPING))) for r in records
+                    if r["early_stop"]})
+    rule_words = {"reference": "the reference view alone", "sides": "the reference view and the held-out side views"}
+    said = [f"{' and '.join(stages)} stopping on {rule_words[rule]}" for rule, stages in kinds]
+    return "; ".join(said) or "no early runs"
+
+
 def _glb(rec: dict[str, Any]) -> dict[str, float]:
     return next(p for p in rec["points"] if p["stage"] == POINTS[-1])
 
@@ -281,7 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(records)} records in {args.results / f'{name}.records.jsonl'}")
             return 1 if failed else 0
     rows = summarise(records)
-    payload = {"title": "Early stopping on and off", "machine": records[0]["machine"], "date": records[0]["date"],
+    payload = {"title": f"Early stopping on and off: {early_runs(records)}", "machine": records[0]["machine"],
+               "date": records[0]["date"],
                "command": "python -m benchmarks.early_stop " + " ".join(argv if argv is not None else sys.argv[1:]),
                "wall_s": time.perf_counter() - start, "seeds": seeds, "scenes": scenes,
                "schedules": list(dict.fromkeys(r["base"] for r in records)), "rows": rows,
