@@ -54,6 +54,7 @@ SIDE_VIEW_SIZE = 64
 """Pixels per side of the held-out renders: enough to see a side change, small enough to keep a window of them
 in every checkpoint (3 views × 3 × 64² floats, 147 kB a row)."""
 MIN_INTERVALS = 3
+"""Log intervals the window must hold before ``sides_drift`` means anything (with one, net = step: always 1)."""
 
 
 def window_steps(config: LoopConfig) -> int:

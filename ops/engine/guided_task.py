@@ -65,8 +65,8 @@ class GuidedTask(ABC):
         self.target, self.suite, self.device = target, suite, device
         self.renders = renders
         # The held-out views cost three small renders a log row: only where they can stop the stage.
-        self.sides = SideWatch(window_steps(loop), target.camera) if loop.early_stop and loop.early_stop_watch_sides \
-            else None
+        watched = loop.early_stop and loop.early_stop_watch_sides
+        self.sides = SideWatch(window_steps(loop), target.camera) if watched else None
         self._targets = {target.resolution: target}
         self.modules = modules
         # The loop's device-side guards skip a step with a non-finite render (its prior outputs or its
