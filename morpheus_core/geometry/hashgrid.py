@@ -99,20 +99,25 @@ def _rows_of(table: Tensor, idx: Tensor) -> Tensor:
     return table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
 
 
-def corners(x: Tensor, tables: LevelTables, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Every point's 8 corners on every level: their table rows (N, L, 8) and the weight planes of the lower and
-    upper corner per axis (3, 2, N, L): 1 − f and f. The eager encode computes them once for its forward and
-    backward."""
+Corners = tuple[Tensor, Tensor, Tensor]
+"""What ``corners`` finds: table rows (N, L, 8), weight planes (3, 2, N, L), trilinear weights (N, L, 8)."""
+
+
+def corners(x: Tensor, tables: LevelTables, base: Tensor | None = None) -> Corners:
+    """Every point's 8 corners on every level: their table rows (N, L, 8), the weight planes of the lower and
+    upper corner per axis (3, 2, N, L): 1 − f and f, and the corners' trilinear weights (N, L, 8), in the points'
+    dtype. The eager encode computes them once for its forward and backward."""
     cell, frac = _positions(x, tables)
-    return _row_indices(cell, tables, base), torch.stack((1 - frac, frac), 1)
+    axis_w = torch.stack((1 - frac, frac), 1)
+    return _row_indices(cell, tables, base), axis_w, _corner_product(axis_w, torch.mul)
 
 
 def eager_encode_forward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor,
-                         base: Tensor | None = None, found: tuple[Tensor, Tensor] | None = None) -> Tensor:
+                         base: Tensor | None = None, found: Corners | None = None) -> Tensor:
     """(N, 3) points → (N, L·F) features in the table's dtype, by tensor ops: the Triton kernels' reference.
     ``found``: ``corners(x, tables, base)`` when the caller has them."""
-    idx, axis_w = found if found is not None else corners(x, tables, base)
-    weights = _corner_product(axis_w, torch.mul).to(table.dtype)
+    idx, _, weights = found if found is not None else corners(x, tables, base)
+    weights = weights.to(table.dtype)
     corner_rows = _rows_of(table, idx)  # (N, L, 8, F)
     # The weights expanded to the rows' shape first: the same products, without a broadcast over F.
     out = (corner_rows * weights.unsqueeze(-1).expand_as(corner_rows).contiguous()).sum(-2)
@@ -138,16 +143,15 @@ def _table_gradient(table: Tensor, idx: Tensor, g: Tensor, weights: Tensor) -> T
 
 def eager_encode_backward(x: Tensor, table: Tensor, tables: LevelTables, level_mask: Tensor, grad_out: Tensor,
                           want_x: bool, want_table: bool, base: Tensor | None = None,
-                          found: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor | None, Tensor | None]:
+                          found: Corners | None = None) -> tuple[Tensor | None, Tensor | None]:
     """(grad_x, grad_table) of ``eager_encode_forward``, each None unless wanted (the hand-written backward).
     ``found``: the forward's ``corners``, else they are computed again."""
-    idx, axis_w = found if found is not None else corners(x, tables, base)
+    idx, axis_w, weights = found if found is not None else corners(x, tables, base)
     mask = level_mask.reshape(1, -1, 1).to(grad_out.dtype)
     g = grad_out.reshape(x.shape[0], level_mask.shape[0], table.shape[1]) * mask
     grad_table = None
     if want_table:
-        weights = _corner_product(axis_w, torch.mul).to(g.dtype)
-        grad_table = _table_gradient(table, idx, g, weights)
+        grad_table = _table_gradient(table, idx, g, weights.to(g.dtype))
     grad_x = None
     if want_x:
         corner_dot = (_rows_of(table, idx).to(x.dtype) * g.unsqueeze(-2).to(x.dtype)).sum(-1)  # (N, L, 8)
