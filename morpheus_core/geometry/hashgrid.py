@@ -203,8 +203,8 @@ class _HashEncode(torch.autograd.Function):
         if compile_enabled(x.device):  # one compiled graph each way; the backward finds the corners again
             return compiled_for(eager_encode_forward, x.device)(x, table, tables, level_mask)
         # Eager (the CPU): finding the corners costs as much as the gather, so the backward reuses them.
-        ctx.encoded = n = encoded_levels(level_mask)
-        part = tables.first(n)
+        n = encoded_levels(level_mask)
+        ctx.encoded = part = tables.first(n)
         ctx.found = corners(x, part)
         out = eager_encode_forward(x, table, part, level_mask[:n], found=ctx.found)
         return out if n == level_mask.shape[0] else F.pad(out, (0, (level_mask.shape[0] - n) * table.shape[1]))
@@ -213,14 +213,15 @@ class _HashEncode(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         x, level_mask, table = ctx.saved_tensors
         want_x, want_table = bool(ctx.needs_input_grad[0]), bool(ctx.needs_input_grad[1])
+        if ctx.found is not None:  # eager: the forward's corners, on the levels it encoded
+            n = ctx.encoded.n_levels
+            grad_x, grad_table = eager_encode_backward(
+                x, table, ctx.encoded, level_mask[:n], grad_out[:, :n * table.shape[1]].contiguous(),
+                want_x, want_table, found=ctx.found)
+            return grad_x, grad_table, None, None
         args = (x, table, ctx.tables, level_mask, grad_out.contiguous(), want_x, want_table)
         if ctx.kernels is not None:
             grad_x, grad_table = ctx.kernels.encode_backward(*args)
-        elif ctx.found is not None:  # eager: the forward's corners, on the levels it encoded
-            n = ctx.encoded
-            grad_x, grad_table = eager_encode_backward(
-                x, table, ctx.tables.first(n), level_mask[:n], grad_out[:, :n * table.shape[1]].contiguous(),
-                want_x, want_table, found=ctx.found)
         else:  # compiled: one graph each way
             grad_x, grad_table = compiled_for(eager_encode_backward, x.device)(*args)
         return grad_x, grad_table, None, None
